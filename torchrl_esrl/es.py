@@ -1,0 +1,130 @@
+"""OpenAI-ES over a flat parameter vector (paper, Section 2 "Evolutionary Strategies";
+Salimans et al. 2017, Algorithm 2 with the paper's hyper-parameters).
+
+``ask`` samples the population around the mean with antithetic noise pairs
+(``mean + sigma * eps``, ``mean - sigma * eps``); ``tell`` turns the returns into centred
+ranks, estimates the gradient of the expected return and lets Adam step the mean.
+The paper's update line ``mu <- 1/n sum F_i N_i`` drops the mean, the learning rate and
+sigma; we implement the update of Salimans et al. that it cites (docs/deviations.md).
+"""
+from __future__ import annotations
+
+import torch
+
+
+def centered_ranks(values: torch.Tensor) -> torch.Tensor:
+    """Fitness shaping of Salimans et al.: ranks mapped linearly to [-0.5, 0.5] (ties by order)."""
+    values = values.reshape(-1)
+    n = values.numel()
+    if n == 1:
+        return torch.zeros(1, dtype=torch.float32)
+    ranks = torch.empty(n, dtype=torch.float32)
+    ranks[values.argsort(stable=True)] = torch.arange(n, dtype=torch.float32)
+    return ranks / (n - 1) - 0.5
+
+
+class OpenES:
+    """Isotropic Gaussian search distribution N(mean, sigma^2 I) whose mean follows Adam.
+
+    Args:
+        mean: initial mean (e.g. ``flat_parameters(actor)``).
+        population_size: offspring per generation (even when ``antithetic``).
+        sigma: standard deviation of the perturbations.
+        lr: Adam learning rate on the mean.
+        antithetic: mirrored sampling (pairs ``+eps``/``-eps``).
+        weight_decay: L2 coefficient added to the gradient (Salimans et al. used 0.005).
+        fitness_shaping: ``"centered_ranks"`` or ``"none"`` (raw returns, standardised).
+        generator: torch RNG for the noise (seeded for reproducibility).
+    """
+
+    def __init__(
+        self,
+        mean: torch.Tensor,
+        population_size: int = 120,
+        sigma: float = 0.005,
+        lr: float = 1e-3,
+        antithetic: bool = True,
+        weight_decay: float = 0.0,
+        fitness_shaping: str = "centered_ranks",
+        generator: torch.Generator | None = None,
+    ):
+        if population_size < 1 or (antithetic and population_size % 2):
+            raise ValueError(f"es.population_size must be a positive{' even' if antithetic else ''} integer, got {population_size}")
+        if sigma <= 0 or lr <= 0:
+            raise ValueError(f"es.sigma and es.lr must be > 0, got sigma={sigma}, lr={lr}")
+        if fitness_shaping not in ("centered_ranks", "none"):
+            raise ValueError(f"es.fitness_shaping must be 'centered_ranks' or 'none', got {fitness_shaping!r}")
+        self.mean = torch.nn.Parameter(mean.detach().clone().float().reshape(-1))
+        self.population_size = int(population_size)
+        self.sigma = float(sigma)
+        self.antithetic = bool(antithetic)
+        self.weight_decay = float(weight_decay)
+        self.fitness_shaping = fitness_shaping
+        self.generator = generator if generator is not None else torch.Generator().manual_seed(0)
+        self.optimizer = torch.optim.Adam([self.mean], lr=lr)
+        self.generation = 0
+        self._noise: torch.Tensor | None = None
+
+    @property
+    def num_parameters(self) -> int:
+        return self.mean.numel()
+
+    def ask(self) -> torch.Tensor:
+        """Sample the population ``[population_size, D]``; remembers the noise for :meth:`tell`."""
+        half = self.population_size // 2 if self.antithetic else self.population_size
+        eps = torch.randn(half, self.num_parameters, generator=self.generator)
+        self._noise = torch.cat([eps, -eps]) if self.antithetic else eps
+        return self.mean.detach() + self.sigma * self._noise
+
+    def gradient(self, returns: torch.Tensor) -> torch.Tensor:
+        """Search-gradient estimate of the expected return w.r.t. the mean (ascent direction)."""
+        if self._noise is None:
+            raise RuntimeError("OpenES.tell called before ask")
+        returns = torch.as_tensor(returns, dtype=torch.float32).reshape(-1)
+        if returns.numel() != self.population_size:
+            raise ValueError(f"expected {self.population_size} returns, got {returns.numel()}")
+        if not torch.isfinite(returns).all():
+            raise FloatingPointError(f"non-finite episode return in ES generation {self.generation}: {returns.tolist()}")
+        if self.fitness_shaping == "centered_ranks":
+            weights = centered_ranks(returns)
+        else:
+            weights = (returns - returns.mean()) / (returns.std() + 1e-8)
+        return weights @ self._noise / (self.population_size * self.sigma)
+
+    def tell(self, returns: torch.Tensor) -> torch.Tensor:
+        """One Adam step of the mean along the estimated gradient; returns that gradient."""
+        grad = self.gradient(returns)
+        self.optimizer.zero_grad(set_to_none=False)
+        # Adam minimises: feed it the negative ascent direction (plus L2 decay on the mean).
+        self.mean.grad = -grad + self.weight_decay * self.mean.detach()
+        self.optimizer.step()
+        self._noise = None
+        self.generation += 1
+        return grad
+
+    @torch.no_grad()
+    def set_mean(self, vector: torch.Tensor, reset_optimizer: bool = False) -> None:
+        """Overwrite the mean in place (the overwrite rule).
+
+        With ``reset_optimizer`` Adam's moments and step count are cleared: they describe the
+        path of the old mean, not the region the new one starts in.
+        """
+        self.mean.copy_(vector.reshape(-1))
+        if reset_optimizer:
+            self.optimizer.state.clear()
+
+    def state_dict(self) -> dict:
+        return {
+            "mean": self.mean.detach().clone(),
+            "optimizer": self.optimizer.state_dict(),
+            "generator": self.generator.get_state(),
+            "generation": self.generation,
+            "sigma": self.sigma,
+        }
+
+    def load_state_dict(self, state: dict) -> None:
+        self.set_mean(state["mean"])
+        self.optimizer.load_state_dict(state["optimizer"])
+        self.generator.set_state(state["generator"])
+        self.generation = int(state["generation"])
+        self.sigma = float(state["sigma"])
