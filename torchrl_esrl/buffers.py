@@ -147,7 +147,7 @@ class MultiBuffer:
     def extend(self, data: TensorDictBase, name: str | None = None) -> None:
         """Write transitions to buffer ``name``; without one, route by ``data[source_key]`` if
         present (items tagged as :meth:`sample` tags them), else write to ``default``."""
-        if data.numel() == 0:
+        if data.batch_size.numel() == 0:  # TensorDict.numel() is 1 for an empty batch
             return
         if name is None and self.source_key in data.keys():
             source = data.get(self.source_key).reshape(-1)

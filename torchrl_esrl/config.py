@@ -4,3 +4,40 @@ from __future__ import annotations
 
 class ConfigError(ValueError):
     """A configuration value is invalid; the message is one line naming the field and what is allowed."""
+
+
+def _positive(cfg, field: str, integer: bool = False) -> None:
+    value = _get(cfg, field)
+    kind = "integer" if integer else "number"
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or (integer and not float(value).is_integer()) or not value > 0:
+        raise ConfigError(f"{field}: {value!r} is invalid (allowed: a positive {kind})")
+
+
+def _get(cfg, field: str):
+    node = cfg
+    for part in field.split("."):
+        node = node[part]
+    return node
+
+
+def validate_config(cfg) -> None:
+    """Value checks run before any environment, network or buffer is built."""
+    from torchrl_esrl.buffers import validate_ratio
+    from torchrl_esrl.envs import resolve_env_id
+
+    resolve_env_id(cfg.env.id)
+    validate_ratio(cfg.buffer.ratio)
+    for field in ("td3.lr", "td3.tau", "es.sigma", "es.lr"):
+        _positive(cfg, field)
+    for field in ("iterations", "td3.frames_per_iteration", "td3.frames_per_batch", "es.population_size", "buffer.capacity", "buffer.batch_size", "eval.episodes", "eval.final_episodes", "overwrite.window", "td3.policy_delay"):
+        _positive(cfg, field, integer=True)
+    if cfg.es.antithetic and cfg.es.population_size % 2:
+        raise ConfigError(f"es.population_size: {cfg.es.population_size} is invalid with es.antithetic=true (allowed: an even positive integer)")
+    if cfg.td3.frames_per_iteration % cfg.td3.frames_per_batch:
+        raise ConfigError(f"td3.frames_per_batch: {cfg.td3.frames_per_batch} does not divide td3.frames_per_iteration={cfg.td3.frames_per_iteration} (allowed: a divisor)")
+    if cfg.buffer.capacity < cfg.buffer.batch_size:
+        raise ConfigError(f"buffer.capacity: {cfg.buffer.capacity} is smaller than buffer.batch_size={cfg.buffer.batch_size} (allowed: >= batch_size)")
+    if cfg.buffer.min_size < cfg.buffer.batch_size:
+        raise ConfigError(f"buffer.min_size: {cfg.buffer.min_size} is smaller than buffer.batch_size={cfg.buffer.batch_size} (allowed: K >= batch_size)")
+    if not 0 <= cfg.threshold.fraction <= 1:
+        raise ConfigError(f"threshold.fraction: {cfg.threshold.fraction} is invalid (allowed: a number in [0, 1])")

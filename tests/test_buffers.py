@@ -1,0 +1,148 @@
+import pytest
+import torch
+from tensordict import TensorDict
+from torchrl.data import TensorDictReplayBuffer
+
+from torchrl_esrl import MultiBuffer
+from torchrl_esrl.buffers import ratio_counts, validate_ratio
+from torchrl_esrl.config import ConfigError
+
+
+def transitions(n, fill=0.0, obs_dim=3, act_dim=1):
+    return TensorDict(
+        {
+            "observation": torch.full((n, obs_dim), fill),
+            "action": torch.zeros(n, act_dim),
+            "next": {
+                "observation": torch.full((n, obs_dim), fill),
+                "reward": torch.full((n, 1), fill),
+                "done": torch.zeros(n, 1, dtype=torch.bool),
+                "terminated": torch.zeros(n, 1, dtype=torch.bool),
+                "truncated": torch.zeros(n, 1, dtype=torch.bool),
+            },
+            "extra": torch.ones(n),  # dropped: not a transition key
+        },
+        batch_size=[n],
+    )
+
+
+@pytest.mark.parametrize(
+    "batch, ratio, expected",
+    [
+        (256, (0.5, 0.2, 0.3), [128, 51, 77]),
+        (256, (0.34, 0.33, 0.33), [87, 85, 84]),
+        (100, (1, 1, 1), [34, 33, 33]),
+        (10, (0, 0, 1), [0, 0, 10]),
+        (7, (0.5, 0.5, 0), [4, 3, 0]),
+        (1, (0.2, 0.3, 0.5), [0, 0, 1]),
+        (255, (5, 2, 3), [128, 51, 76]),
+    ],
+)
+def test_ratio_counts_largest_remainder(batch, ratio, expected):
+    counts = ratio_counts(batch, ratio)
+    assert counts == expected
+    assert sum(counts) == batch
+
+
+def test_ratio_counts_are_within_one_of_the_quota():
+    generator = torch.Generator().manual_seed(1)
+    for _ in range(200):
+        ratio = torch.rand(3, generator=generator).tolist()
+        batch = int(torch.randint(1, 1000, (1,), generator=generator))
+        counts = ratio_counts(batch, ratio)
+        assert sum(counts) == batch
+        for count, share in zip(counts, ratio):
+            assert abs(count - batch * share / sum(ratio)) < 1
+
+
+@pytest.mark.parametrize("bad", [[1, 2], [-0.1, 0.5, 0.6], [0, 0, 0], ["a", 1, 1], [float("nan"), 1, 1]])
+def test_invalid_ratio_is_a_one_line_config_error(bad):
+    with pytest.raises(ConfigError, match=r"^buffer\.ratio: .*allowed") as error:
+        validate_ratio(bad)
+    assert "\n" not in str(error.value)
+
+
+def filled(ratio=(0.5, 0.2, 0.3), sizes=(300, 300, 300), **kwargs):
+    buffer = MultiBuffer(ratio=ratio, capacity=1000, batch_size=256, **kwargs)
+    for index, (name, size) in enumerate(zip(buffer.names, sizes)):
+        buffer.extend(transitions(size, fill=float(index)), name)
+    return buffer
+
+
+@pytest.mark.parametrize("ratio", [(0.5, 0.2, 0.3), (0.34, 0.33, 0.33), (0.0, 0.5, 0.5), (1, 0, 0)])
+@pytest.mark.parametrize("batch_size", [256, 100, 33])
+def test_every_batch_holds_exactly_the_ratio(ratio, batch_size):
+    buffer = filled(ratio)
+    expected = ratio_counts(batch_size, ratio)
+    for _ in range(5):
+        batch = buffer.sample(batch_size)
+        assert batch.batch_size == torch.Size([batch_size])
+        counts = torch.bincount(batch["buffer"], minlength=3).tolist()
+        assert counts == expected
+        # the tag says where the item came from: each buffer was filled with its own index
+        assert torch.equal(batch["observation"][:, 0], batch["buffer"].float())
+        assert "extra" not in batch.keys()
+
+
+def test_readiness_rule_of_the_paper():
+    buffer = MultiBuffer(ratio=(0.5, 0.2, 0.3), capacity=1000, min_size=100)
+    assert not buffer.ready()
+    buffer.extend(transitions(500), "noisy")
+    buffer.extend(transitions(100), "good")
+    assert not buffer.ready()  # bad still empty
+    buffer.extend(transitions(99), "bad")
+    assert not buffer.ready()
+    with pytest.raises(RuntimeError, match="not ready"):
+        buffer.sample(10)
+    buffer.extend(transitions(1), "bad")
+    assert buffer.ready()
+
+
+def test_buffers_with_zero_share_do_not_block_readiness():
+    buffer = MultiBuffer(ratio=(0.0, 0.0, 1.0), capacity=1000, min_size=50)
+    buffer.extend(transitions(50), "noisy")
+    assert buffer.ready()
+    assert torch.all(buffer.sample(64)["buffer"] == 2)
+
+
+def test_renormalize_samples_only_ready_buffers():
+    buffer = MultiBuffer(ratio=(0.5, 0.2, 0.3), capacity=1000, min_size=100, renormalize=True)
+    assert not buffer.ready()
+    buffer.extend(transitions(100, fill=2.0), "noisy")
+    buffer.extend(transitions(50, fill=0.0), "good")  # below K: not sampled yet
+    assert buffer.ready()
+    assert buffer.counts(256) == {"good": 0, "bad": 0, "noisy": 256}
+    buffer.extend(transitions(50, fill=0.0), "good")
+    assert buffer.counts(80) == {"good": 50, "bad": 0, "noisy": 30}
+    counts = torch.bincount(buffer.sample(80)["buffer"], minlength=3).tolist()
+    assert counts == [50, 0, 30]
+
+
+def test_extend_routes_by_tag_and_defaults_to_noisy():
+    buffer = MultiBuffer(capacity=100)
+    buffer.extend(transitions(5))
+    assert buffer.sizes() == {"good": 0, "bad": 0, "noisy": 5}
+    tagged = transitions(6)
+    tagged["buffer"] = torch.tensor([0, 0, 1, 2, 2, 2])
+    buffer.extend(tagged)
+    assert buffer.sizes() == {"good": 2, "bad": 1, "noisy": 8}
+    assert len(buffer) == 11
+    assert isinstance(buffer.good, TensorDictReplayBuffer) and buffer["bad"] is buffer.bad
+
+
+def test_state_dict_round_trip_restores_contents():
+    source = filled(sizes=(10, 20, 30))
+    target = MultiBuffer(ratio=(1, 1, 1), capacity=1000)
+    target.load_state_dict(source.state_dict())
+    assert target.sizes() == source.sizes()
+    assert target.ratio == source.ratio
+    assert torch.equal(target.bad[:]["observation"], source.bad[:]["observation"])
+
+
+def test_dumps_and_loads_round_trip(tmp_path):
+    source = filled(sizes=(10, 20, 30), min_size=5)
+    source.dumps(tmp_path / "mb")
+    target = MultiBuffer(capacity=1000).loads(tmp_path / "mb")
+    assert target.sizes() == {"good": 10, "bad": 20, "noisy": 30}
+    assert target.min_size == 5
+    assert torch.equal(target.noisy[:]["next", "reward"], source.noisy[:]["next", "reward"])

@@ -1,0 +1,39 @@
+import copy
+
+import torch
+from tensordict import TensorDict
+
+from torchrl_esrl.envs import make_env
+from torchrl_esrl.networks import PopulationActor, flat_parameters, load_flat_parameters, make_actor
+
+
+def test_actor_is_the_papers_2x256_tanh_network_within_bounds():
+    env = make_env("halfcheetah")
+    actor = make_actor(17, env.action_spec)
+    linear = [m for m in actor.modules() if isinstance(m, torch.nn.Linear)]
+    assert [(m.in_features, m.out_features) for m in linear] == [(17, 256), (256, 256), (256, 6)]
+    assert any(isinstance(m, torch.nn.Tanh) for m in actor.modules())
+    out = actor(TensorDict(observation=100 * torch.randn(64, 17), batch_size=[64]))["action"]
+    assert env.action_spec.is_in(out)
+
+
+def test_flat_parameters_round_trip_excludes_buffers():
+    actor = make_actor(5, make_env("pendulum").action_spec, hidden=(8, 8))
+    vector = flat_parameters(actor)
+    assert vector.numel() == sum(p.numel() for p in actor.parameters())
+    load_flat_parameters(actor, torch.arange(vector.numel(), dtype=torch.float32))
+    assert torch.equal(flat_parameters(actor), torch.arange(vector.numel(), dtype=torch.float32))
+
+
+def test_population_actor_matches_each_member_loaded_into_the_actor():
+    env = make_env("pendulum")  # action bounds [-2, 2]: checks the rescaling too
+    actor = make_actor(3, env.action_spec)
+    population = flat_parameters(actor)[None] + 0.3 * torch.randn(6, flat_parameters(actor).numel())
+    observations = torch.randn(6, 3)
+    batched = PopulationActor(actor)(population, observations)
+    member = copy.deepcopy(actor)
+    for p in range(6):
+        load_flat_parameters(member, population[p])
+        expected = member(TensorDict(observation=observations[p : p + 1], batch_size=[1]))["action"]
+        torch.testing.assert_close(batched[p : p + 1], expected, rtol=1e-5, atol=1e-6)
+    assert batched.abs().max() <= 2.0 and batched.abs().max() > 1.0

@@ -1,0 +1,47 @@
+import torch
+
+from torchrl_esrl.envs import make_env
+from torchrl_esrl.es import OpenES
+from torchrl_esrl.es_collector import ESCollector
+from torchrl_esrl.networks import flat_parameters, load_flat_parameters, make_actor
+from torchrl_esrl.overwrite import OverwriteRule
+
+
+def test_decision_uses_the_average_over_the_window():
+    rule = OverwriteRule(window=2)
+    assert rule(td3_return=10, es_return=0).overwrite  # 10 > 0
+    decision = rule(td3_return=-30, es_return=5)  # averages: td3 -10, es 2.5
+    assert not decision.overwrite
+    assert decision.td3_average == -10 and decision.es_average == 2.5
+    decision = rule(td3_return=40, es_return=0)  # window drops the first: td3 5, es 2.5
+    assert decision.overwrite and decision.td3_average == 5
+    assert [d.overwrite for d in rule.decisions] == [True, False, True]
+
+
+def test_overwriting_copies_the_actor_into_the_es_mean_and_its_behaviour():
+    env = make_env("swimmer")
+    actor = make_actor(8, env.action_spec)
+    es = OpenES(torch.zeros_like(flat_parameters(actor)), population_size=4)
+    with torch.no_grad():
+        for parameter in actor.parameters():
+            parameter.add_(0.05 * torch.randn_like(parameter))
+    es.set_mean(flat_parameters(actor), reset_optimizer=True)
+    assert torch.equal(es.mean.detach(), flat_parameters(actor))
+    # a copy, not a view: training the actor further leaves the mean where it was
+    trained = flat_parameters(actor)
+    with torch.no_grad():
+        next(actor.parameters()).add_(1.0)
+    assert not torch.equal(es.mean.detach(), flat_parameters(actor))
+    load_flat_parameters(actor, trained)
+    collector = ESCollector("swimmer", actor, backend="gym", max_episode_steps=50)
+    from_mean = collector.evaluate_policy(es.mean.detach(), 2, seeds=[3, 4]).returns
+    from_actor = collector.evaluate_policy(flat_parameters(actor), 2, seeds=[3, 4]).returns
+    torch.testing.assert_close(from_mean, from_actor)
+
+
+def test_state_round_trip():
+    rule = OverwriteRule(window=3)
+    rule(1.0, 2.0)
+    restored = OverwriteRule()
+    restored.load_state_dict(rule.state_dict())
+    assert restored(5.0, 0.0).td3_average == rule(5.0, 0.0).td3_average == 3.0

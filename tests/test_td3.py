@@ -1,0 +1,114 @@
+"""TD3 through TorchRL's TD3Loss, fed by the three buffers (real envs, small budgets)."""
+import torch
+from torchrl.collectors import Collector
+from torchrl.modules import MLP, ValueOperator
+from torchrl.objectives import DDPGLoss
+
+from torchrl_esrl import MultiBuffer
+from torchrl_esrl.envs import make_env
+from torchrl_esrl.es import OpenES
+from torchrl_esrl.es_collector import ESCollector
+from torchrl_esrl.networks import flat_parameters, make_actor, make_critic
+from torchrl_esrl.td3 import TD3, finished_episode_returns, make_td3_collector, td3_phase
+from torchrl_esrl.threshold import Threshold
+
+
+def build(env_name, seed=0, hidden=(256, 256), **td3_kwargs):
+    torch.manual_seed(seed)
+    env = make_env(env_name, seed=seed)
+    obs_dim = env.observation_spec["observation"].shape[-1]
+    actor = make_actor(obs_dim, env.action_spec, hidden)
+    critic = make_critic(obs_dim, env.action_spec.shape[-1], hidden)
+    return env, actor, TD3(actor, critic, env.action_spec, **td3_kwargs)
+
+
+def test_policy_delay_updates_actor_and_targets_every_second_step():
+    env, actor, td3 = build("pendulum")
+    buffer = MultiBuffer(ratio=(0, 0, 1), capacity=1000, batch_size=32, min_size=32)
+    collector = make_td3_collector(env, td3, frames_per_batch=64)
+    buffer.extend(next(iter(collector)), "noisy")
+    collector.shutdown()
+    target_before = td3.loss.target_qvalue_network_params.clone()
+    actor_before = flat_parameters(actor)
+    out = td3.update(buffer.sample())
+    assert "actor_loss" not in out
+    assert torch.equal(flat_parameters(actor), actor_before)
+    assert (td3.loss.target_qvalue_network_params == target_before).all()
+    out = td3.update(buffer.sample())
+    assert "actor_loss" in out
+    assert not torch.equal(flat_parameters(actor), actor_before)
+    assert not (td3.loss.target_qvalue_network_params == target_before).all()
+
+
+def test_exploration_noise_has_configured_scale():
+    env, actor, td3 = build("halfcheetah", exploration_noise=0.1)
+    td = env.reset()
+    clean = actor(td.clone())["action"]
+    noisy = torch.stack([td3.exploration_policy(td.clone())["action"] for _ in range(400)])
+    noise = (noisy - clean).flatten()
+    assert abs(noise.std().item() - 0.1) < 0.02
+    assert abs(noise.mean().item()) < 0.02
+
+
+def test_no_learning_before_every_buffer_holds_k():
+    env, actor, td3 = build("pendulum")
+    buffer = MultiBuffer(capacity=10_000, batch_size=64, min_size=500)
+    collector = make_td3_collector(env, td3, frames_per_batch=100)
+    stats = td3_phase(1000, iter(collector), td3, buffer)
+    collector.shutdown()
+    assert stats["updates"] == 0 and td3.updates == 0  # good and bad are still empty
+    assert buffer.sizes() == {"good": 0, "bad": 0, "noisy": 1000}
+
+
+def test_td3_with_three_buffers_learns_pendulum():
+    """ES offspring fill good/bad through the threshold, TD3 fills noisy and learns from all three."""
+    env, actor, td3 = build("pendulum", seed=1, hidden=(64, 64), lr=1e-3)
+    buffer = MultiBuffer(ratio=(0.5, 0.2, 0.3), capacity=50_000, batch_size=128, min_size=256)
+    threshold = Threshold(0.9)
+    es = OpenES(flat_parameters(actor), population_size=10, sigma=0.02, lr=0.01, generator=torch.Generator().manual_seed(1))
+    es_collector = ESCollector("pendulum", actor, seed=1)
+    collector = make_td3_collector(env, td3, frames_per_batch=50)
+    batches = iter(collector)
+    before = es_collector.evaluate_policy(flat_parameters(actor), 5).returns.mean().item()
+    for _ in range(6):
+        for _ in range(2):
+            generation = es_collector.evaluate(es.ask())
+            good = threshold.route(generation.returns)
+            buffer.extend(generation.transitions[generation.member_mask(good)], "good")
+            buffer.extend(generation.transitions[generation.member_mask(~good)], "bad")
+            es.tell(generation.returns)
+        td3_phase(1000, batches, td3, buffer, on_episode=threshold.observe)
+    collector.shutdown()
+    after = es_collector.evaluate_policy(flat_parameters(actor), 5).returns.mean().item()
+    assert td3.updates >= 4000
+    assert min(buffer.sizes().values()) >= 256
+    assert before < -900, before  # Pendulum-v1: random and untrained policies score about -1200
+    assert after > -800 and after - before > 400, (before, after)
+
+
+def test_multibuffer_is_a_drop_in_buffer_for_another_torchrl_loss():
+    """DDPGLoss (not TD3) trained from MultiBuffer batches of real Pendulum transitions."""
+    torch.manual_seed(0)
+    env = make_env("pendulum", seed=0)
+    actor = make_actor(3, env.action_spec, hidden=(64, 64))
+    value = ValueOperator(MLP(in_features=4, out_features=1, num_cells=[64, 64]), in_keys=["observation", "action"])
+    loss = DDPGLoss(actor, value, delay_actor=True, delay_value=True)
+    loss.make_value_estimator(gamma=0.9)
+    optimizer = torch.optim.Adam(loss.parameters(), lr=1e-3)
+    buffer = MultiBuffer(ratio=(0.5, 0.0, 0.5), capacity=5000, batch_size=128, min_size=200)
+    collector = Collector(env, None, frames_per_batch=400, total_frames=800)  # random actions
+    for index, data in enumerate(collector):
+        buffer.extend(data, "good" if index == 0 else "noisy")
+    collector.shutdown()
+    assert finished_episode_returns(data)  # Pendulum episodes are 200 frames: two ended
+    held_out = buffer.sample(256)
+    with torch.no_grad():
+        before = loss(held_out)["loss_value"].item()
+    for _ in range(300):
+        losses = loss(buffer.sample())
+        optimizer.zero_grad()
+        (losses["loss_value"] + losses["loss_actor"]).backward()
+        optimizer.step()
+    with torch.no_grad():
+        after = loss(held_out)["loss_value"].item()
+    assert after < 0.5 * before, (before, after)

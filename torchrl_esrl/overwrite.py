@@ -1,0 +1,66 @@
+"""The overwrite rule (paper, Section 4.3 "Overwrite Rule" and the end of Algorithm 1).
+
+After each iteration the TD3 actor and the ES mean are evaluated. If TD3's evaluation,
+averaged over the last ``window`` iterations, beats the ES mean's average over the same
+iterations, the ES mean becomes the TD3 actor's parameters. Averages damp the occasional
+collapse of either learner between updates, as the paper describes.
+"""
+from __future__ import annotations
+
+from collections import deque
+from dataclasses import asdict, dataclass
+
+
+@dataclass
+class OverwriteDecision:
+    iteration: int
+    td3_return: float
+    es_return: float
+    td3_average: float
+    es_average: float
+    overwrite: bool
+
+    def as_dict(self) -> dict:
+        return asdict(self)
+
+
+class OverwriteRule:
+    """Decides, once per iteration, whether the ES mean is replaced by the TD3 actor."""
+
+    def __init__(self, window: int = 3):
+        if window < 1:
+            raise ValueError(f"overwrite.window must be >= 1, got {window}")
+        self.window = int(window)
+        self.td3_returns: deque[float] = deque(maxlen=self.window)
+        self.es_returns: deque[float] = deque(maxlen=self.window)
+        self.decisions: list[OverwriteDecision] = []
+
+    def __call__(self, td3_return: float, es_return: float) -> OverwriteDecision:
+        self.td3_returns.append(float(td3_return))
+        self.es_returns.append(float(es_return))
+        td3_average = sum(self.td3_returns) / len(self.td3_returns)
+        es_average = sum(self.es_returns) / len(self.es_returns)
+        decision = OverwriteDecision(
+            iteration=len(self.decisions),
+            td3_return=float(td3_return),
+            es_return=float(es_return),
+            td3_average=td3_average,
+            es_average=es_average,
+            overwrite=td3_average > es_average,
+        )
+        self.decisions.append(decision)
+        return decision
+
+    def state_dict(self) -> dict:
+        return {
+            "window": self.window,
+            "td3_returns": list(self.td3_returns),
+            "es_returns": list(self.es_returns),
+            "decisions": [d.as_dict() for d in self.decisions],
+        }
+
+    def load_state_dict(self, state: dict) -> None:
+        self.window = int(state["window"])
+        self.td3_returns = deque(state["td3_returns"], maxlen=self.window)
+        self.es_returns = deque(state["es_returns"], maxlen=self.window)
+        self.decisions = [OverwriteDecision(**d) for d in state["decisions"]]

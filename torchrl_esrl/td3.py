@@ -1,0 +1,173 @@
+"""TD3 half of ES-TD3Buffers (paper, Algorithm 1 "perform TD3 iterations"; Fujimoto et al. 2018).
+
+:class:`TD3` holds TorchRL's :class:`~torchrl.objectives.TD3Loss` (twin critics, target policy
+smoothing), the :class:`~torchrl.objectives.SoftUpdate` of the targets, one Adam per network and
+the policy delay. :func:`td3_phase` is the inner loop of Algorithm 1: act with Gaussian
+exploration noise, store every transition in the ``noisy`` buffer, and once the buffer is
+ready, do one TD3 update per environment frame.
+"""
+from __future__ import annotations
+
+from collections.abc import Callable, Iterator
+
+import torch
+from tensordict import TensorDictBase
+from tensordict.nn import TensorDictSequential
+from torchrl.collectors import Collector
+from torchrl.modules import AdditiveGaussianModule
+from torchrl.objectives import SoftUpdate, TD3Loss
+
+
+class TD3:
+    """TD3 learner over an actor and a critic template (two critics are made from it).
+
+    Args:
+        actor: deterministic actor (``observation -> action``).
+        critic: Q network (``observation, action -> state_action_value``).
+        action_spec: bounds used by the target policy smoothing and the exploration noise.
+        lr: Adam learning rate of actor and critics (paper: 3e-4).
+        gamma: discount.
+        tau: soft target update rate (paper: 0.005).
+        policy_noise, noise_clip: target policy smoothing of TD3.
+        policy_delay: critic updates per actor/target update.
+        exploration_noise: std of the Gaussian noise added to actions when acting (paper: 0.1).
+        loss_function: critic regression loss (``"l2"`` as in Fujimoto's TD3).
+    """
+
+    def __init__(
+        self,
+        actor: TensorDictSequential,
+        critic,
+        action_spec,
+        lr: float = 3e-4,
+        gamma: float = 0.99,
+        tau: float = 0.005,
+        policy_noise: float = 0.2,
+        noise_clip: float = 0.5,
+        policy_delay: int = 2,
+        exploration_noise: float = 0.1,
+        loss_function: str = "l2",
+    ):
+        self.actor = actor
+        self.action_spec = action_spec
+        self.loss = TD3Loss(
+            actor_network=actor,
+            qvalue_network=critic,
+            action_spec=action_spec,
+            num_qvalue_nets=2,
+            policy_noise=policy_noise,
+            noise_clip=noise_clip,
+            loss_function=loss_function,
+            delay_actor=True,
+            delay_qvalue=True,
+        )
+        self.loss.make_value_estimator(gamma=gamma)
+        self.target_update = SoftUpdate(self.loss, tau=tau)
+        # The loss shares storage with `actor`; the two critics live in the loss's stacked params.
+        self.actor_optimizer = torch.optim.Adam(list(actor.parameters()), lr=lr)
+        self.critic_optimizer = torch.optim.Adam(list(self.loss.qvalue_network_params.values(True, True)), lr=lr)
+        self.policy_delay = int(policy_delay)
+        self.exploration_policy = TensorDictSequential(
+            actor,
+            AdditiveGaussianModule(spec=action_spec, sigma_init=1.0, sigma_end=1.0, mean=0.0, std=float(exploration_noise)),
+        )
+        self.updates = 0
+
+    def update(self, batch: TensorDictBase) -> dict[str, float]:
+        """One TD3 step: critic update; every ``policy_delay`` steps actor and target updates."""
+        critic_loss, _ = self.loss.value_loss(batch)
+        if not torch.isfinite(critic_loss):
+            raise FloatingPointError(f"TD3 critic loss is {critic_loss.item()} at update {self.updates}")
+        self.critic_optimizer.zero_grad(set_to_none=True)
+        critic_loss.backward()
+        self.critic_optimizer.step()
+        self.updates += 1
+        out = {"critic_loss": critic_loss.item()}
+        if self.updates % self.policy_delay == 0:
+            actor_loss, _ = self.loss.actor_loss(batch)
+            if not torch.isfinite(actor_loss):
+                raise FloatingPointError(f"TD3 actor loss is {actor_loss.item()} at update {self.updates}")
+            self.actor_optimizer.zero_grad(set_to_none=True)
+            actor_loss.backward()
+            self.actor_optimizer.step()
+            self.target_update.step()
+            out["actor_loss"] = actor_loss.item()
+        return out
+
+    def state_dict(self) -> dict:
+        return {
+            "loss": self.loss.state_dict(),
+            "actor_optimizer": self.actor_optimizer.state_dict(),
+            "critic_optimizer": self.critic_optimizer.state_dict(),
+            "updates": self.updates,
+        }
+
+    def load_state_dict(self, state: dict) -> None:
+        self.loss.load_state_dict(state["loss"])
+        self.actor_optimizer.load_state_dict(state["actor_optimizer"])
+        self.critic_optimizer.load_state_dict(state["critic_optimizer"])
+        self.updates = int(state["updates"])
+
+
+def make_td3_collector(env, td3: TD3, frames_per_batch: int = 1) -> Collector:
+    """TorchRL collector acting with the exploration policy; runs for as long as it is iterated."""
+    return Collector(
+        env,
+        td3.exploration_policy,
+        frames_per_batch=int(frames_per_batch),
+        total_frames=-1,
+        auto_register_policy_transforms=False,
+    )
+
+
+def finished_episode_returns(batch: TensorDictBase) -> list[float]:
+    """Returns of the episodes that ended inside a collected batch (from TorchRL's ``RewardSum``)."""
+    done = batch.get(("next", "done")).reshape(-1)
+    if not done.any():
+        return []
+    return batch.get(("next", "episode_reward")).reshape(-1)[done].tolist()
+
+
+def td3_phase(
+    frames: int,
+    batches: Iterator[TensorDictBase],
+    td3: TD3,
+    buffer,
+    on_episode: Callable[[float], None] | None = None,
+    updates_per_frame: float = 1.0,
+    on_batch: Callable[[int, dict], None] | None = None,
+) -> dict[str, float]:
+    """Act for ``frames`` frames, writing to ``buffer``'s noisy part and learning once it is ready.
+
+    ``batches`` is an iterator over a TorchRL collector (kept alive across phases so episodes
+    continue where they stopped). ``buffer`` is a :class:`~torchrl_esrl.buffers.MultiBuffer`
+    (written under ``"noisy"``) or any TorchRL replay buffer. ``on_episode`` sees each finished
+    training episode's return (Algorithm 1 lets them raise the threshold).
+    """
+    is_multibuffer = hasattr(buffer, "ready")
+    collected, stats = 0, {"updates": 0, "episodes": 0}
+    losses: dict[str, list[float]] = {}
+    owed = 0.0  # fractional updates carried between batches
+    while collected < frames:
+        batch = next(batches)
+        collected += batch.numel()
+        if is_multibuffer:
+            buffer.extend(batch, "noisy")
+        else:
+            buffer.extend(batch)
+        for episode_return in finished_episode_returns(batch):
+            stats["episodes"] += 1
+            if on_episode is not None:
+                on_episode(episode_return)
+        if buffer.ready() if is_multibuffer else len(buffer) > 0:
+            owed += batch.numel() * updates_per_frame
+            while owed >= 1:
+                owed -= 1
+                for key, value in td3.update(buffer.sample()).items():
+                    losses.setdefault(key, []).append(value)
+                stats["updates"] += 1
+        if on_batch is not None:
+            on_batch(batch.numel(), stats)
+    stats["frames"] = collected
+    stats.update({key: sum(v) / len(v) for key, v in losses.items()})
+    return stats
