@@ -22,7 +22,7 @@ from tqdm.auto import tqdm
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # run from a checkout without installing
 
 from torchrl_esrl.config import ConfigError, validate_config  # noqa: E402
-from torchrl_esrl.envs import quiet_mujoco_log  # noqa: E402
+from torchrl_esrl.envs import quiet_logs  # noqa: E402
 from torchrl_esrl.factories import (  # noqa: E402
     make_actor_critic,
     make_es,
@@ -42,7 +42,7 @@ from torchrl_esrl.td3 import td3_phase  # noqa: E402
 
 def train(cfg: DictConfig, run_dir: Path) -> dict:
     """Run Algorithm 1 and return the summary written to ``summary.json``."""
-    quiet_mujoco_log()
+    quiet_logs()
     seed_everything(cfg.seed)
     start = time.perf_counter()
 

@@ -7,7 +7,7 @@ return and step count transforms); ES evaluates populations through the backends
 from __future__ import annotations
 
 import difflib
-import os
+import logging
 
 import gymnasium as gym
 from torchrl_esrl.config import ConfigError
@@ -37,15 +37,9 @@ def resolve_env_id(name: str) -> str:
     raise ConfigError(f"env.id: unknown environment '{name}'{hint} (allowed: {', '.join(known)} or any gymnasium id)")
 
 
-def quiet_mujoco_log() -> None:
-    """MuJoCo appends compiler warnings to MUJOCO_LOG.TXT in the working directory; keep runs clean."""
-    os.environ.setdefault("MUJOCO_QUIET", "1")
-    try:
-        import mujoco
-
-        mujoco.set_mju_user_warning(lambda msg: None)
-    except (ImportError, AttributeError):  # pragma: no cover - older mujoco
-        pass
+def quiet_logs() -> None:
+    """Keep the console for the progress bar: TorchRL's storage INFO lines go to WARNING level."""
+    logging.getLogger("torchrl").setLevel(logging.WARNING)
 
 
 def make_gym_env(env_id: str, max_episode_steps: int | None = None) -> gym.Env:
