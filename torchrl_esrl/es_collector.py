@@ -126,7 +126,14 @@ class GymBackend:
         return Generation(torch.as_tensor(returns), torch.as_tensor(lengths), transitions)
 
 
-BACKENDS: dict[str, Callable[..., object]] = {"gym": GymBackend}
+def _ray_backend(*args, **kwargs):
+    """``es.backend=ray``: imported on use, Ray is an optional extra (torchrl_esrl/ray_backend.py)."""
+    from torchrl_esrl.ray_backend import make_ray_backend
+
+    return make_ray_backend(*args, **kwargs)
+
+
+BACKENDS: dict[str, Callable[..., object]] = {"gym": GymBackend, "ray": _ray_backend}
 
 
 def available_backends() -> list[str]:

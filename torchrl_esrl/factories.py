@@ -91,7 +91,12 @@ def make_es(cfg: DictConfig, actor) -> OpenES:
 
 
 def make_es_collector(cfg: DictConfig, actor) -> ESCollector:
-    return ESCollector(cfg.env.id, actor, backend=cfg.es.backend, max_episode_steps=cfg.env.max_episode_steps, seed=int(cfg.seed) + 2)
+    backend_kwargs = {}
+    if cfg.es.backend == "ray":  # offspring evaluated on a Ray cluster, see the `ray` config section
+        from torchrl_esrl.ray_backend import ray_backend_kwargs
+
+        backend_kwargs = ray_backend_kwargs(cfg)
+    return ESCollector(cfg.env.id, actor, backend=cfg.es.backend, max_episode_steps=cfg.env.max_episode_steps, seed=int(cfg.seed) + 2, **backend_kwargs)
 
 
 def make_threshold(cfg: DictConfig) -> Threshold:
