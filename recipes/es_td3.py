@@ -21,6 +21,7 @@ from tqdm.auto import tqdm
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # run from a checkout without installing
 
+from torchrl_esrl.async_es_td3 import BackgroundES  # noqa: E402
 from torchrl_esrl.config import ConfigError, validate_config  # noqa: E402
 from torchrl_esrl.envs import quiet_logs  # noqa: E402
 from torchrl_esrl.factories import (  # noqa: E402
@@ -56,6 +57,9 @@ def train(cfg: DictConfig, run_dir: Path) -> dict:
     es_collector = make_es_collector(cfg, actor)
     threshold = make_threshold(cfg)  # best = -inf
     overwrite = make_overwrite_rule(cfg)
+    background_es = None
+    if cfg.mode == "async":  # ES generations overlap the TD3 phase; buffer and threshold become lock-guarded
+        background_es, buffer, threshold = BackgroundES.wrap(es, es_collector, buffer, threshold, cfg.es.generations_per_iteration)
     log = MetricsLog(run_dir, backend=cfg.logger.backend, experiment_name=cfg.experiment_name)
     td3_frames = 0
 
@@ -66,6 +70,8 @@ def train(cfg: DictConfig, run_dir: Path) -> dict:
     for iteration in range(cfg.iterations):
         # --- TD3: M frames of noisy actions into the noisy buffer, learning once all buffers hold K.
         bar.set_postfix_str("TD3")
+        if background_es is not None:
+            background_es.start()  # this iteration's ES generations, from the current mean, in a thread
         td3_stats = td3_phase(
             cfg.td3.frames_per_iteration,
             td3_batches,
@@ -75,11 +81,11 @@ def train(cfg: DictConfig, run_dir: Path) -> dict:
             updates_per_frame=cfg.td3.updates_per_frame,
         )
         td3_frames += td3_stats["frames"]
+        generation_returns = background_es.join() if background_es is not None else []
         td3_return = evaluate(flat_parameters(actor), cfg.eval.episodes)
 
-        # --- ES: g generations; offspring trajectories go to good or bad by the threshold.
-        generation_returns = []
-        for generation_index in range(cfg.es.generations_per_iteration):
+        # --- ES: g generations; offspring trajectories go to good or bad by the threshold (async: done above).
+        for generation_index in range(0 if background_es is not None else cfg.es.generations_per_iteration):
             bar.set_postfix_str(f"ES {generation_index + 1}/{cfg.es.generations_per_iteration}")
             population = es.ask()
             generation = es_collector.evaluate(population)
@@ -124,6 +130,8 @@ def train(cfg: DictConfig, run_dir: Path) -> dict:
         bar.set_postfix(td3=f"{td3_return:.0f}", es=f"{es_return:.0f}", overwrite=decision.overwrite)
     bar.close()
     collector.shutdown()
+    if background_es is not None:
+        background_es.close()
 
     # Return: mu (the paper's output), evaluated next to the TD3 actor.
     torch.save(es.mean.detach().clone(), run_dir / "es_mean.pt")

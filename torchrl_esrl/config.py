@@ -41,3 +41,5 @@ def validate_config(cfg) -> None:
         raise ConfigError(f"buffer.min_size: {cfg.buffer.min_size} is smaller than buffer.batch_size={cfg.buffer.batch_size} (allowed: K >= batch_size)")
     if not 0 <= cfg.threshold.fraction <= 1:
         raise ConfigError(f"threshold.fraction: {cfg.threshold.fraction} is invalid (allowed: a number in [0, 1])")
+    if cfg.get("mode", "sequential") not in ("sequential", "async"):
+        raise ConfigError(f"mode: {cfg.mode!r} is invalid (allowed: sequential, async)")

@@ -1,0 +1,90 @@
+"""mode=async: ES generations in a background thread while the main thread trains TD3."""
+import json
+import threading
+
+import pytest
+import torch
+
+from test_recipe import TINY, run_recipe
+from torchrl_esrl.async_es_td3 import BackgroundES, Guarded
+from torchrl_esrl.buffers import MultiBuffer
+from torchrl_esrl.envs import make_env
+from torchrl_esrl.es import OpenES
+from torchrl_esrl.es_collector import ESCollector
+from torchrl_esrl.metrics import read_metrics
+from torchrl_esrl.networks import flat_parameters, make_actor
+from torchrl_esrl.threshold import Threshold
+
+
+def swimmer_parts(generations=3):
+    actor = make_actor(8, make_env("swimmer").action_spec)
+    es = OpenES(flat_parameters(actor), population_size=4, sigma=0.05, lr=0.01, generator=torch.Generator().manual_seed(1))
+    collector = ESCollector("swimmer", actor, backend="gym", max_episode_steps=50, seed=3)
+    buffer = MultiBuffer(ratio=(0.5, 0.2, 0.3), capacity=5000, batch_size=32, min_size=32, renormalize=True)
+    return es, collector, buffer, Threshold(0.9), generations
+
+
+def test_background_generations_overlap_the_main_thread_and_route_every_transition():
+    es, collector, buffer, threshold, generations = swimmer_parts()
+    mean_before = es.mean.detach().clone()
+    background, buffer, threshold = BackgroundES.wrap(es, collector, buffer, threshold, generations)
+    noisy = collector.evaluate_policy(mean_before, 1, seeds=[0]).transitions  # stand-in TD3 batch, 50 transitions
+    main_steps_while_es_ran = 0
+    background.start()
+    while not background.future.done():  # the main thread keeps writing, reading and sampling meanwhile
+        buffer.extend(noisy, "noisy")
+        threshold.observe(-1e9)
+        if buffer.ready():
+            assert buffer.sample().batch_size == torch.Size([32])
+        main_steps_while_es_ran += 1
+    returns = background.join()
+    background.close()
+    assert main_steps_while_es_ran > 0
+    assert len(returns) == generations and all(r.shape == (4,) for r in returns)
+    sizes = buffer.sizes()
+    assert sizes["good"] + sizes["bad"] == collector.frames == generations * 4 * 50  # Swimmer never terminates
+    assert sizes["noisy"] == min(5000, 50 * main_steps_while_es_ran)
+    assert threshold.best == max(r.max().item() for r in returns)
+    assert not torch.equal(es.mean.detach(), mean_before)  # the ES mean moved in the thread
+
+
+def test_errors_in_the_es_thread_surface_at_join():
+    es, collector, buffer, threshold, _ = swimmer_parts()
+    es = OpenES(torch.zeros(es.num_parameters + 1), population_size=4)  # wrong size: the collector rejects it in the thread
+    background, _, _ = BackgroundES.wrap(es, collector, buffer, threshold, 1)
+    background.start()
+    with pytest.raises(ValueError, match="parameters per member"):
+        background.join()
+    background.close()
+
+
+def test_guarded_calls_hold_the_lock():
+    lock = threading.RLock()
+    seen = []
+
+    class Probe:
+        value = 3
+
+        def call(self):
+            seen.append(lock._is_owned())
+            return 7
+
+    guarded = Guarded(Probe(), lock)
+    assert guarded.call() == 7 and seen == [True] and guarded.value == 3
+
+
+def test_recipe_async_mode_same_frames_as_sequential(tmp_path):
+    result = run_recipe(*TINY, "iterations=2", "env=swimmer", "mode=async", f"hydra.run.dir={tmp_path}")
+    assert result.returncode == 0, result.stderr[-3000:]
+    rows = read_metrics(tmp_path / "metrics.csv")
+    assert [r["td3_frames"] for r in rows] == [600, 1200]
+    assert [r["es_frames"] for r in rows] == [800, 1600]  # 2 generations x 4 offspring x 100 steps per iteration
+    assert rows[-1]["good_size"] + rows[-1]["bad_size"] == 1600 and rows[-1]["noisy_size"] == 1200
+    assert rows[-1]["td3_updates"] > 0
+    assert json.loads((tmp_path / "summary.json").read_text())["es_frames"] == 1600
+
+
+def test_unknown_mode_fails_fast(tmp_path):
+    result = run_recipe("mode=hogwild", "logger.progress=false", f"hydra.run.dir={tmp_path}")
+    assert result.returncode != 0 and "mode" in result.stderr.strip().splitlines()[-1]
+    assert "Traceback" not in result.stderr
