@@ -80,7 +80,7 @@ def test_recipe_runs_es_on_the_ray_cluster(cluster, tmp_path):
     from test_recipe import TINY
 
     result = subprocess.run(
-        [sys.executable, str(ROOT / "recipes" / "es_td3.py"), *TINY, "iterations=1", "env=swimmer", "es.backend=ray", f"ray.address='{cluster.address}'", "ray.num_workers=2", f"hydra.run.dir={tmp_path}"],
+        [sys.executable, str(ROOT / "recipes" / "es_td3.py"), *TINY, "iterations=1", "env=swimmer", "td3.frames_per_iteration=300", "es.backend=ray", f"ray.address='{cluster.address}'", "ray.num_workers=2", f"hydra.run.dir={tmp_path}"],
         cwd=ROOT,
         capture_output=True,
         text=True,
