@@ -1,8 +1,9 @@
 """mode=async vs mode=sequential (Algorithm 1) at equal frames, on this machine, in one process.
 
-    python benchmarks/async_vs_sequential.py [--iterations 3] [--env halfcheetah] [override ...]
+    python benchmarks/async_vs_sequential.py [--iterations 3] [--repeats 2] [--env halfcheetah] [override ...]
 
-Runs the recipe's ``train`` twice with the same seed and budget, once per mode, and prints wall
+Runs the recipe's ``train`` with the same seed and budget in both modes (``--repeats`` runs each,
+in ABBA order), and prints wall
 time per iteration, returns and their ratios (async / sequential), measured in the same run.
 Writes benchmarks/results/async_vs_sequential.json.
 """
@@ -75,29 +76,41 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--iterations", type=int, default=3)
     parser.add_argument("--env", default="halfcheetah")
+    parser.add_argument("--repeats", type=int, default=2, help="runs per mode, in ABBA order")
     parser.add_argument("--out", default=str(ROOT / "benchmarks" / "results" / "async_vs_sequential.json"))
+    parser.add_argument("--torch-threads", type=int, default=int(os.environ.get("OMP_NUM_THREADS", "1")), help="run with OMP_NUM_THREADS set to the same value: OpenMP reads it per thread")
     parser.add_argument("overrides", nargs="*", help="extra Hydra overrides for both runs")
     args = parser.parse_args()
-    torch.set_num_threads(max(1, min(2, os.cpu_count() or 1)))
+    torch.set_num_threads(args.torch_threads)
     train = load_train()
     common = [*BUDGET, f"env={args.env}", f"iterations={args.iterations}", *args.overrides]
-    results = {}
-    for mode in ("sequential", "async"):
-        results[mode] = run(train, [*common, f"mode={mode}"])
-        print(f"{mode:>10}: {results[mode]['mean_iteration_time_s']:.2f} s/iteration, ES mean {results[mode]['final_es_mean_return']:.1f}, TD3 actor {results[mode]['final_td3_actor_return']:.1f}", flush=True)
-    seq, asy = results["sequential"], results["async"]
-    assert (seq["td3_frames"], seq["es_frames"]) == (asy["td3_frames"], asy["es_frames"]), "modes must compare at equal frames"
+    # ABBA order (sequential, async, async, sequential, ...): a machine whose load drifts during the
+    # benchmark (shared CPUs) biases both modes alike.
+    order = [m for r in range(args.repeats) for m in (("sequential", "async") if r % 2 == 0 else ("async", "sequential"))]
+    runs: dict[str, list[dict]] = {"sequential": [], "async": []}
+    for mode in order:
+        result = run(train, [*common, f"mode={mode}"])
+        runs[mode].append(result)
+        print(f"{mode:>10}: {result['mean_iteration_time_s']:.2f} s/iteration, ES mean {result['final_es_mean_return']:.1f}, TD3 actor {result['final_td3_actor_return']:.1f}", flush=True)
+    seq, asy = runs["sequential"], runs["async"]
+    assert {(r["td3_frames"], r["es_frames"]) for r in seq + asy} == {(seq[0]["td3_frames"], seq[0]["es_frames"])}, "modes must compare at equal frames"
+
+    def mean(rs, key):
+        return sum(r[key] for r in rs) / len(rs)
+
+    results = runs
     ratios = {
-        "iteration_time_async_over_sequential": round(asy["mean_iteration_time_s"] / seq["mean_iteration_time_s"], 3),
-        "wall_time_async_over_sequential": round(asy["wall_time_s"] / seq["wall_time_s"], 3),
-        "final_es_return_async_minus_sequential": round(asy["final_es_mean_return"] - seq["final_es_mean_return"], 2),
-        "final_td3_return_async_minus_sequential": round(asy["final_td3_actor_return"] - seq["final_td3_actor_return"], 2),
+        "iteration_time_async_over_sequential": round(mean(asy, "mean_iteration_time_s") / mean(seq, "mean_iteration_time_s"), 3),
+        "iteration_time_ratio_per_pair": [round(a["mean_iteration_time_s"] / s["mean_iteration_time_s"], 3) for s, a in zip(seq, asy)],
+        "wall_time_async_over_sequential": round(mean(asy, "wall_time_s") / mean(seq, "wall_time_s"), 3),
+        "final_es_return_async_minus_sequential": round(mean(asy, "final_es_mean_return") - mean(seq, "final_es_mean_return"), 2),
+        "final_td3_return_async_minus_sequential": round(mean(asy, "final_td3_actor_return") - mean(seq, "final_td3_actor_return"), 2),
     }
     print(json.dumps(ratios, indent=2))
     load = os.getloadavg() if hasattr(os, "getloadavg") else None
     report = {
         "overrides": common,
-        "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "torch_threads": torch.get_num_threads(), "load_average_at_end": load},
+        "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "torch_threads": torch.get_num_threads(), "OMP_NUM_THREADS": os.environ.get("OMP_NUM_THREADS"), "load_average_at_end": load},
         "results": results,
         "ratios": ratios,
     }
