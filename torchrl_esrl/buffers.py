@@ -19,7 +19,7 @@ from pathlib import Path
 
 import torch
 from tensordict import TensorDict, TensorDictBase
-from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
+from torchrl.data import LazyTensorStorage, RandomSampler, TensorDictReplayBuffer
 
 from torchrl_esrl.config import ConfigError
 
@@ -193,8 +193,11 @@ class MultiBuffer:
         """A batch with exactly each buffer's share, tagged under ``source_key``."""
         if not self.ready():
             raise RuntimeError(f"MultiBuffer is not ready to sample: {self!r}")
+        counts = self.counts(batch_size)
+        if self._can_gather():
+            return self._gather(counts)
         parts, sources = [], []
-        for index, (name, count) in enumerate(self.counts(batch_size).items()):
+        for index, (name, count) in enumerate(counts.items()):
             if count == 0:
                 continue
             part = self.buffers[name].sample(count)
@@ -204,6 +207,40 @@ class MultiBuffer:
             sources.append(torch.full((count,), index, dtype=torch.long))
         batch = torch.cat(parts, 0)
         batch.set(self.source_key, torch.cat(sources))
+        return batch
+
+    def _can_gather(self) -> bool:
+        """True when every buffer is a plain uniform TorchRL buffer over a tensor storage."""
+        return self.keys is not None and all(
+            isinstance(b._storage, LazyTensorStorage)
+            and type(b._sampler) is RandomSampler
+            and len(b._transform) == 0
+            and (len(b) == 0 or b._storage.initialized)
+            for b in self.buffers.values()
+        )
+
+    def _gather(self, counts: dict[str, int]) -> TensorDict:
+        """Uniform sampling with replacement, as TorchRL's ``RandomSampler``, written by hand:
+        one ``index_select`` per key straight from each buffer's storage into a preallocated
+        batch. Three ``sample()`` calls and a ``torch.cat`` measured ~3x one buffer's sample;
+        this path measures about the same as one (benchmarks/buffer_sampling.py)."""
+        total = sum(counts.values())
+        picks = []  # (storage TensorDict, indices, start)
+        start = 0
+        for name, count in counts.items():
+            if count:
+                buffer = self.buffers[name]
+                picks.append((buffer._storage._storage, torch.randint(len(buffer), (count,)), start))
+                start += count
+        batch = TensorDict(batch_size=[total])
+        for key in self.keys:
+            reference = picks[0][0].get(key)
+            out = torch.empty((total, *reference.shape[1:]), dtype=reference.dtype, device=reference.device)
+            for storage, index, begin in picks:
+                torch.index_select(storage.get(key), 0, index, out=out[begin : begin + index.numel()])
+            batch.set(key, out)
+        sources = torch.repeat_interleave(torch.arange(len(self.names)), torch.tensor(list(counts.values())))
+        batch.set(self.source_key, sources)
         return batch
 
     # ------------------------------------------------------------ persistence
