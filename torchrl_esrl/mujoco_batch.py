@@ -206,28 +206,30 @@ class MujocoBatchBackend:
                 group, group_params = live, params[torch.as_tensor(live)]
                 layers = self.policy.split(group_params)
                 position_in_group = np.arange(len(live))
-            group_obs = torch.from_numpy(obs_traj[group, t])
-            action = self.policy(group_params, group_obs, layers).numpy()
+            all_live = len(live) == population
+            # Basic slices while every member is live: views instead of fancy-index copies.
+            rows = slice(None) if all_live else live
+            group_rows = slice(None) if len(group) == population else group
+            action = self.policy(group_params, torch.from_numpy(obs_traj[group_rows, t]), layers).numpy()
             if len(group) != len(live):
                 action = action[position_in_group]
-            all_live = len(live) == population
-            ids = None if all_live else live
-            actions[live, t] = action
-            ctrl[live] = action
+            actions[rows, t] = action
+            ctrl[rows] = action
 
-            batch.step(ids=ids, nstep=self.frame_skip)
+            batch.step(ids=None if all_live else live, nstep=self.frame_skip)
 
-            qpos, qvel = (state_qpos, state_qvel) if all_live else (state_qpos[live], state_qvel[live])
+            qpos, qvel = state_qpos[rows], state_qvel[rows]
             if rules.x_from_body is not None:
-                x_after = body_xpos[live, rules.x_from_body, 0]
+                x_after = body_xpos[rows, rules.x_from_body, 0]
             else:
                 x_after = qpos[:, 0]
-            forward_reward = c["_forward_reward_weight"] * ((x_after - x_before[live]) / self.dt)
-            x_before[live] = x_after
+            forward_reward = c["_forward_reward_weight"] * ((x_after - x_before[rows]) / self.dt)
+            x_before[rows] = x_after
             # float32 like gymnasium's np.sum(np.square(action)) on the float32 action
             ctrl_cost = self.ctrl_cost_weight * np.square(action).sum(axis=1)
 
-            observation = obs_traj[live, t + 1]  # fancy index: a copy, written back below
+            # A view while all are live; a fancy-index copy otherwise, written back below.
+            observation = obs_traj[rows, t + 1]
             n_pos = nq - skipped
             observation[:, :n_pos] = qpos[:, skipped:]
             if rules.clip_qvel is None:
@@ -241,25 +243,26 @@ class MujocoBatchBackend:
                 term = ~healthy if c["_terminate_when_unhealthy"] else np.zeros(len(live), dtype=bool)
             else:
                 reward = forward_reward
-                term = np.zeros(len(live), dtype=bool)
+                term = None
             if rules.contact_forces:
                 self._contact_forces(batch, live, cfrc_ext)
                 low, high = c["_contact_force_range"]
-                clipped = np.clip(cfrc_ext[live], low, high)
+                clipped = np.clip(cfrc_ext[rows], low, high)
                 contact_cost = c["_contact_cost_weight"] * np.square(clipped).reshape(len(live), -1).sum(axis=1)
                 observation[:, n_pos + nv :] = clipped[:, 1:].reshape(len(live), -1)
                 reward = reward - (ctrl_cost + contact_cost)
             else:
                 reward = reward - ctrl_cost
-            obs_traj[live, t + 1] = observation
-            rewards[live, t] = reward
-            terminated[live, t] = term
-            trunc = t + 1 >= horizon
-            truncated[live, t] = trunc
-            lengths[live] = t + 1
-            if trunc:
-                break
-            if term.any():
+            if not all_live:
+                obs_traj[live, t + 1] = observation
+            rewards[rows, t] = reward
+            lengths[rows] = t + 1
+            if t + 1 >= horizon:  # time limit (gymnasium's TimeLimit: truncated even when also terminated)
+                truncated[rows, t] = True
+            if term is not None and term.any():
+                terminated[rows, t] = term
+                if t + 1 >= horizon:
+                    break
                 live = live[~term]
                 if len(live) == 0:
                     break
