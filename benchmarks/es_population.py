@@ -37,7 +37,6 @@ import numpy as np
 import torch
 from torchrl.data import Bounded
 
-from torchrl_esrl.envs import quiet_mujoco_log
 from torchrl_esrl.es_collector import GymBackend
 from torchrl_esrl.mujoco_batch import MujocoBatchBackend
 from torchrl_esrl.networks import PopulationActor, flat_parameters, load_flat_parameters, make_actor
@@ -151,7 +150,6 @@ def main(argv=None) -> dict:
     parser.add_argument("--repeats", type=int, default=2, help="runs per method; the fastest is reported")
     parser.add_argument("--out", default="benchmarks/results/es_population.json")
     args = parser.parse_args(argv)
-    quiet_mujoco_log()
     members = args.members or (16 if args.quick else 120)
     steps = args.steps or (200 if args.quick else 1000)
     if args.torch_threads:

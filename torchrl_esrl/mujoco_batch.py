@@ -28,7 +28,7 @@ import mujoco.batch
 import numpy as np
 import torch
 
-from torchrl_esrl.envs import make_gym_env, quiet_mujoco_log, resolve_env_id
+from torchrl_esrl.envs import make_gym_env, resolve_env_id
 from torchrl_esrl.es_collector import Generation, transitions_from_arrays
 from torchrl_esrl.networks import PopulationActor
 
@@ -114,7 +114,6 @@ class MujocoBatchBackend:
         self.env_id = resolve_env_id(env_id)
         if self.env_id not in TASKS:
             raise ValueError(f"mujoco_batch backend: unsupported env '{self.env_id}' (supported: {', '.join(TASKS)})")
-        quiet_mujoco_log()
         self.rules = TASKS[self.env_id]
         self.policy = population_actor
         # The reset env: its reset(seed) gives each member gymnasium's exact initial state.
