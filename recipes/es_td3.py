@@ -9,15 +9,23 @@ its Hydra run directory.
 """
 from __future__ import annotations
 
-import sys
-import time
-from pathlib import Path
+import os
 
-import hydra
-import torch
-from hydra.core.hydra_config import HydraConfig
-from omegaconf import DictConfig, OmegaConf
-from tqdm.auto import tqdm
+# Before torch loads: libgomp's default spin-wait keeps torch's OpenMP threads busy after each
+# forward and steals the cores MuJoCo's batch threads need next (ES evaluation with the
+# mujoco_batch backend ran its physics 2x slower; docs/performance.md). Read only at torch's
+# import, hence here; setdefault so a caller's choice wins.
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
+import sys  # noqa: E402
+import time  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import hydra  # noqa: E402
+import torch  # noqa: E402
+from hydra.core.hydra_config import HydraConfig  # noqa: E402
+from omegaconf import DictConfig, OmegaConf  # noqa: E402
+from tqdm.auto import tqdm  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # run from a checkout without installing
 
