@@ -335,7 +335,9 @@ def prepare_run(cfg, hydra_run_dir):
             if key in current:
                 saved[key] = current[key]
         cfg = OmegaConf.create(saved)
-    elif saved is not None:
+    validate_config(cfg)
+    check_output_dir(run_dir)
+    if saved is not None and not resume:
         before, now = _flatten({k: v for k, v in saved.items() if k not in IGNORED_ON_RESUME}), _flatten({k: v for k, v in current.items() if k not in IGNORED_ON_RESUME})
         for key in sorted(set(before) | set(now)):
             if before.get(key, "<absent>") != now.get(key, "<absent>"):
@@ -343,6 +345,4 @@ def prepare_run(cfg, hydra_run_dir):
                     f"{key}: {now.get(key, '<absent>')!r} differs from {before.get(key, '<absent>')!r} in the checkpoint of {run_dir} "
                     "(allowed: the run's own config to resume it, or another hydra.run.dir)"
                 )
-    validate_config(cfg)
-    check_output_dir(run_dir)
     return cfg, run_dir

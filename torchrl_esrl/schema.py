@@ -137,8 +137,14 @@ class ValidateBeforeRun(Callback):
 
     def on_run_start(self, config, **kwargs: Any) -> None:
         from torchrl_esrl.checkpoint import prepare_run
+        from torchrl_esrl.config import ConfigError
 
-        prepare_run(config, config.hydra.run.dir)
+        try:
+            prepare_run(config, config.hydra.run.dir)
+        except ConfigError as error:
+            # Hydra turns a callback's Exception into a warning and goes on: exit here instead.
+            print(f"config error: {error}", file=sys.stderr)
+            raise SystemExit(2) from None
 
 
 def one_line(error: BaseException) -> str:
