@@ -206,38 +206,41 @@ def td3_phase(
     on_episode: Callable[[float], None] | None = None,
     updates_per_frame: float = 1.0,
     on_batch: Callable[[int, dict], None] | None = None,
+    progress=None,
 ) -> dict[str, float]:
     """Act for ``frames`` frames, writing to ``buffer``'s noisy part and learning once it is ready.
 
     ``batches`` is an iterator over a TorchRL collector (kept alive across phases so episodes
     continue where they stopped). ``buffer`` is a :class:`~torchrl_esrl.buffers.MultiBuffer`
     (written under ``"noisy"``) or any TorchRL replay buffer. ``on_episode`` sees each finished
-    training episode's return (Algorithm 1 lets them raise the threshold).
+    training episode's return (Algorithm 1 lets them raise the threshold). ``progress`` (a
+    :class:`~torchrl_esrl.checkpoint.PhaseProgress`) holds the phase's counters: pass the one
+    restored from a checkpoint to finish a phase interrupted mid-way.
     """
+    from torchrl_esrl.checkpoint import PhaseProgress
+
+    p = PhaseProgress() if progress is None else progress
     is_multibuffer = hasattr(buffer, "ready")
-    collected, stats = 0, {"updates": 0, "episodes": 0}
-    losses: dict[str, list[float]] = {}
-    owed = 0.0  # fractional updates carried between batches
-    while collected < frames:
+    while p.collected < frames:
         batch = next(batches)
-        collected += batch.numel()
+        p.collected += batch.numel()
         if is_multibuffer:
             buffer.extend(batch, "noisy")
         else:
             buffer.extend(batch)
         for episode_return in finished_episode_returns(batch):
-            stats["episodes"] += 1
+            p.episodes += 1
             if on_episode is not None:
                 on_episode(episode_return)
         if buffer.ready() if is_multibuffer else len(buffer) > 0:
-            owed += batch.numel() * updates_per_frame
-            while owed >= 1:
-                owed -= 1
+            p.owed += batch.numel() * updates_per_frame  # fractional updates carried between batches
+            while p.owed >= 1:
+                p.owed -= 1
                 for key, value in td3.update(buffer.sample()).items():
-                    losses.setdefault(key, []).append(value)
-                stats["updates"] += 1
+                    p.losses.setdefault(key, []).append(value)
+                p.updates += 1
         if on_batch is not None:
-            on_batch(batch.numel(), stats)
-    stats["frames"] = collected
-    stats.update({key: sum(v) / len(v) for key, v in losses.items()})
+            on_batch(batch.numel(), {"updates": p.updates, "episodes": p.episodes})
+    stats = {"updates": p.updates, "episodes": p.episodes, "frames": p.collected}
+    stats.update({key: sum(v) / len(v) for key, v in p.losses.items()})
     return stats
