@@ -5,24 +5,33 @@
     python recipes/es_td3.py -m experiment=quick 'buffer.ratio=[0.5,0.2,0.3],[0.34,0.33,0.33]'
 
 Each run writes metrics.csv, summary.json, the TorchRL logger's files and the final actors into
-its Hydra run directory.
+its Hydra run directory, and checkpoints into its checkpoints/ folder: rerunning the command with
+the same hydra.run.dir, or resume=<run dir>, continues from the last one (torchrl_esrl/checkpoint.py).
 """
 from __future__ import annotations
 
-import sys
-import time
-from pathlib import Path
+import os
 
-import hydra
-import torch
-from hydra.core.hydra_config import HydraConfig
-from omegaconf import DictConfig, OmegaConf
-from tqdm.auto import tqdm
+# Before torch loads: libgomp's default spin-wait keeps torch's OpenMP threads busy after each
+# forward and steals the cores MuJoCo's batch threads need next (ES evaluation with the
+# mujoco_batch backend ran its physics 2x slower; docs/performance.md). Read only at torch's
+# import, hence here; setdefault so a caller's choice wins.
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
+import sys  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import hydra  # noqa: E402
+import torch  # noqa: E402
+from hydra.core.hydra_config import HydraConfig  # noqa: E402
+from omegaconf import DictConfig, OmegaConf  # noqa: E402
+from tqdm.auto import tqdm  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # run from a checkout without installing
 
 from torchrl_esrl.async_es_td3 import BackgroundES  # noqa: E402
-from torchrl_esrl.config import ConfigError, validate_config  # noqa: E402
+from torchrl_esrl.checkpoint import RunCheckpoint, RunProgress, TD3EnvState, make_deterministic, prepare_run  # noqa: E402
+from torchrl_esrl.config import ConfigError  # noqa: E402
 from torchrl_esrl.envs import quiet_logs  # noqa: E402
 from torchrl_esrl.factories import (  # noqa: E402
     make_actor_critic,
@@ -36,8 +45,10 @@ from torchrl_esrl.factories import (  # noqa: E402
     make_train_env,
     seed_everything,
 )
+from torchrl_esrl.faults import check_finite, inject_faults_from_env  # noqa: E402
 from torchrl_esrl.metrics import MetricsLog, write_json  # noqa: E402
 from torchrl_esrl.networks import flat_parameters  # noqa: E402
+from torchrl_esrl.schema import run_cli  # noqa: E402
 from torchrl_esrl.td3 import td3_phase  # noqa: E402
 
 
@@ -45,7 +56,7 @@ def train(cfg: DictConfig, run_dir: Path) -> dict:
     """Run Algorithm 1 and return the summary written to ``summary.json``."""
     quiet_logs()
     seed_everything(cfg.seed)
-    start = time.perf_counter()
+    make_deterministic()
 
     # Initialise: TD3 actor pi, critics Q0, Q1 and targets; ES mean mu and sigma; MultiBuffer.
     env = make_train_env(cfg)
@@ -61,13 +72,17 @@ def train(cfg: DictConfig, run_dir: Path) -> dict:
     if cfg.mode == "async":  # ES generations overlap the TD3 phase; buffer and threshold become lock-guarded
         background_es, buffer, threshold = BackgroundES.wrap(es, es_collector, buffer, threshold, cfg.es.generations_per_iteration)
     log = MetricsLog(run_dir, backend=cfg.logger.backend, experiment_name=cfg.experiment_name)
-    td3_frames = 0
+    progress = RunProgress()  # iteration, TD3 frames, the TD3 phase under way
+    components = dict(progress=progress, td3=td3, exploration=td3.exploration_policy, td3_env=TD3EnvState(collector), buffer=buffer, es=es, es_collector=es_collector, threshold=threshold, overwrite=overwrite)
+    checkpoint = RunCheckpoint(run_dir, OmegaConf.to_container(cfg, resolve=True), cfg.checkpoint.every_frames, cfg.checkpoint.keep_last, **components)
+    checkpoint.restore()  # continue from the run directory's last checkpoint, if it has one
+    inject_faults_from_env(progress, es, buffer)  # tests only: ESRL_INJECT_NAN=<where>@<iteration>
 
     def evaluate(vector: torch.Tensor, episodes: int) -> float:
         return es_collector.evaluate_policy(vector, episodes).returns.mean().item()
 
     bar = tqdm(total=cfg.iterations, desc="ES-TD3Buffers", unit="it", disable=not cfg.logger.progress)
-    for iteration in range(cfg.iterations):
+    for iteration in range(progress.iteration, cfg.iterations):
         # --- TD3: M frames of noisy actions into the noisy buffer, learning once all buffers hold K.
         bar.set_postfix_str("TD3")
         if background_es is not None:
@@ -77,12 +92,14 @@ def train(cfg: DictConfig, run_dir: Path) -> dict:
             td3_batches,
             td3,
             buffer,
-            on_episode=threshold.observe,  # TD3 episodes raise the best return too
+            on_episode=lambda r: threshold.observe(check_finite("TD3 episode return", r)),  # TD3 episodes raise the best too
             updates_per_frame=cfg.td3.updates_per_frame,
+            on_batch=checkpoint.maybe_save_mid_phase if background_es is None else None,  # every checkpoint.every_frames frames (async: ES state is in flux, iteration boundaries only)
+            progress=progress.td3_phase,
         )
-        td3_frames += td3_stats["frames"]
+        td3_frames = progress.td3_frames + td3_stats["frames"]
         generation_returns = background_es.join() if background_es is not None else []
-        td3_return = evaluate(flat_parameters(actor), cfg.eval.episodes)
+        td3_return = check_finite("TD3 evaluation return", evaluate(flat_parameters(actor), cfg.eval.episodes))
 
         # --- ES: g generations; offspring trajectories go to good or bad by the threshold (async: done above).
         for generation_index in range(0 if background_es is not None else cfg.es.generations_per_iteration):
@@ -92,9 +109,10 @@ def train(cfg: DictConfig, run_dir: Path) -> dict:
             good = threshold.route(generation.returns)
             buffer.extend(generation.transitions[generation.member_mask(good)], "good")
             buffer.extend(generation.transitions[generation.member_mask(~good)], "bad")
-            es.tell(generation.returns)
+            es.tell(generation.returns)  # raises on a non-finite return
+            check_finite("ES mean", es.mean)
             generation_returns.append(generation.returns)
-        es_return = evaluate(es.mean.detach(), cfg.eval.episodes)
+        es_return = check_finite("ES evaluation return", evaluate(es.mean.detach(), cfg.eval.episodes))
 
         # --- Overwrite rule: recentre ES on the TD3 actor if TD3 is ahead on average.
         decision = overwrite(td3_return, es_return)
@@ -123,9 +141,11 @@ def train(cfg: DictConfig, run_dir: Path) -> dict:
                 "es_generation_max_return": all_returns.max().item(),
                 "critic_loss": td3_stats.get("critic_loss", ""),
                 "actor_loss": td3_stats.get("actor_loss", ""),
-                "wall_time_s": round(time.perf_counter() - start, 2),
+                "wall_time_s": round(progress.wall_time(), 2),
             }
         )
+        progress.finish_iteration(td3_frames)
+        checkpoint.save()
         bar.update(1)
         bar.set_postfix(td3=f"{td3_return:.0f}", es=f"{es_return:.0f}", overwrite=decision.overwrite)
     bar.close()
@@ -141,13 +161,13 @@ def train(cfg: DictConfig, run_dir: Path) -> dict:
         "seed": cfg.seed,
         "ratio": list(cfg.buffer.ratio),
         "iterations": cfg.iterations,
-        "td3_frames": td3_frames,
+        "td3_frames": progress.td3_frames,
         "es_frames": es_collector.frames,
         "td3_updates": td3.updates,
         "final_es_mean_return": evaluate(es.mean.detach(), cfg.eval.final_episodes),
         "final_td3_actor_return": evaluate(flat_parameters(actor), cfg.eval.final_episodes),
         "overwrites": sum(d.overwrite for d in overwrite.decisions),
-        "wall_time_s": round(time.perf_counter() - start, 2),
+        "wall_time_s": round(progress.wall_time(), 2),
     }
     write_json(run_dir / "summary.json", summary)
     return summary
@@ -156,14 +176,16 @@ def train(cfg: DictConfig, run_dir: Path) -> dict:
 @hydra.main(version_base="1.3", config_path="../conf", config_name="config")
 def main(cfg: DictConfig) -> None:
     try:
-        validate_config(cfg)
+        cfg, run_dir = prepare_run(cfg, HydraConfig.get().runtime.output_dir)  # checks; the saved config on resume
     except ConfigError as error:
         raise SystemExit(f"config error: {error}") from None
-    run_dir = Path(HydraConfig.get().runtime.output_dir)
     print(OmegaConf.to_yaml(cfg, resolve=True)) if cfg.logger.progress else None
-    summary = train(cfg, run_dir)
+    try:
+        summary = train(cfg, run_dir)
+    except FloatingPointError as fault:
+        raise SystemExit(f"numerical fault: {fault}; run stopped, last good checkpoint kept in {run_dir / 'checkpoints'}") from None
     print(f"final ES mean return {summary['final_es_mean_return']:.1f}, TD3 actor return {summary['final_td3_actor_return']:.1f} -> {run_dir}")
 
 
 if __name__ == "__main__":
-    main()
+    run_cli(main)  # configuration errors as one line, no traceback

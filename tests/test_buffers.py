@@ -146,3 +146,24 @@ def test_dumps_and_loads_round_trip(tmp_path):
     assert target.sizes() == {"good": 10, "bad": 20, "noisy": 30}
     assert target.min_size == 5
     assert torch.equal(target.noisy[:]["next", "reward"], source.noisy[:]["next", "reward"])
+
+
+def test_gather_cache_follows_load_state_dict():
+    """MultiBuffer caches the storages' tensors for its gather path; loading new contents refreshes them."""
+    from tensordict import TensorDict
+
+    def filled(value):
+        mb = MultiBuffer(ratio=(0.5, 0.2, 0.3), capacity=64, batch_size=32)
+        for name in mb.names:
+            mb.extend(TensorDict({
+                "observation": torch.full((64, 3), float(value)), "action": torch.zeros(64, 1),
+                "next": {"observation": torch.zeros(64, 3), "reward": torch.zeros(64, 1),
+                         "done": torch.zeros(64, 1, dtype=torch.bool), "terminated": torch.zeros(64, 1, dtype=torch.bool),
+                         "truncated": torch.zeros(64, 1, dtype=torch.bool)}}, [64]), name)
+        return mb
+
+    a, b = filled(1.0), filled(2.0)
+    assert (a.sample()["observation"] == 1).all()
+    a.load_state_dict(b.state_dict())
+    assert (a.sample()["observation"] == 2).all()
+    assert a.sample()["buffer"].tolist() == [0] * 16 + [1] * 6 + [2] * 10

@@ -112,3 +112,65 @@ def test_multibuffer_is_a_drop_in_buffer_for_another_torchrl_loss():
     with torch.no_grad():
         after = loss(held_out)["loss_value"].item()
     assert after < 0.5 * before, (before, after)
+
+
+def test_fast_td3_matches_stock_torchrl_td3():
+    """The default (Q1-only actor loss, foreach soft update, fused Adam) gives stock TD3Loss's
+    losses, parameters and target parameters on the same batches and noise."""
+    import copy
+
+    from torchrl.data import Bounded
+
+    torch.manual_seed(0)
+    spec = Bounded(-torch.ones(6), torch.ones(6), shape=(6,))
+    actor, critic = make_actor(17, spec), make_critic(17, 6)
+    torch.manual_seed(1)  # TD3Loss draws the second critic's initial weights
+    stock = TD3(copy.deepcopy(actor), copy.deepcopy(critic), spec, fast=False)
+    torch.manual_seed(1)
+    fast = TD3(actor, critic, spec)
+    assert fast.fast and type(fast.loss).__name__ == "TD3LossQ1Actor"
+    buffer = MultiBuffer(capacity=512, batch_size=256)
+    for name in buffer.names:
+        buffer.extend(_random_transitions(512, 17, 6), name)
+    for step in range(6):
+        batch = buffer.sample()
+        torch.manual_seed(100 + step)
+        out_stock = stock.update(batch)
+        torch.manual_seed(100 + step)
+        out_fast = fast.update(batch)
+        assert out_stock.keys() == out_fast.keys()
+        for key in out_stock:
+            assert abs(out_stock[key] - out_fast[key]) <= 1e-5 * max(1.0, abs(out_stock[key])), (step, key)
+    for a, b in zip(stock.loss.parameters(), fast.loss.parameters()):
+        torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-6)
+    for name in ("target_actor_network_params", "target_qvalue_network_params"):
+        torch.testing.assert_close(getattr(stock.loss, name).to_dict(), getattr(fast.loss, name).to_dict(), rtol=1e-5, atol=1e-6)
+
+
+def test_q1_actor_loss_gradient_equals_td3loss():
+    from torchrl.data import Bounded
+    from torchrl.objectives import TD3Loss
+
+    from torchrl_esrl.td3 import TD3LossQ1Actor
+
+    torch.manual_seed(0)
+    spec = Bounded(-torch.ones(6), torch.ones(6), shape=(6,))
+    actor, critic = make_actor(17, spec), make_critic(17, 6)
+    batch = _random_transitions(256, 17, 6)
+    grads, values = [], []
+    for cls in (TD3Loss, TD3LossQ1Actor):
+        torch.manual_seed(1)
+        loss = cls(actor_network=actor, qvalue_network=critic, action_spec=spec, num_qvalue_nets=2)
+        loss_actor, _ = loss.actor_loss(batch)
+        actor.zero_grad()
+        loss_actor.backward()
+        values.append(loss_actor.detach())
+        grads.append(torch.cat([p.grad.flatten() for p in actor.parameters()]))
+    torch.testing.assert_close(values[0], values[1])
+    torch.testing.assert_close(grads[0], grads[1], rtol=1e-5, atol=1e-7)
+
+
+def _random_transitions(n, obs_dim, act_dim):
+    from benchmarks.common import transitions
+
+    return transitions(n, obs_dim, act_dim, torch.Generator().manual_seed(n))

@@ -4,6 +4,7 @@ from torchrl_esrl.es import OpenES, centered_ranks
 from torchrl_esrl.es_collector import ESCollector, Generation
 from torchrl_esrl.networks import PopulationActor, flat_parameters, load_flat_parameters, make_actor, make_critic
 from torchrl_esrl.overwrite import OverwriteRule
+from torchrl_esrl import schema as _schema  # noqa: F401  registers the typed config schema with Hydra
 from torchrl_esrl.td3 import TD3, td3_phase
 from torchrl_esrl.threshold import Threshold
 

@@ -43,3 +43,30 @@ def validate_config(cfg) -> None:
         raise ConfigError(f"threshold.fraction: {cfg.threshold.fraction} is invalid (allowed: a number in [0, 1])")
     if cfg.get("mode", "sequential") not in ("sequential", "async"):
         raise ConfigError(f"mode: {cfg.mode!r} is invalid (allowed: sequential, async)")
+    validate_run_settings(cfg)
+
+
+def validate_run_settings(cfg) -> None:
+    """Checks of the keys added by issue #5 (iteration counts, checkpoints)."""
+    _positive(cfg, "es.generations_per_iteration", integer=True)
+    _positive(cfg, "buffer.min_size", integer=True)
+    every = cfg.get("checkpoint", {}).get("every_frames", 0)
+    if isinstance(every, bool) or not isinstance(every, int) or every < 0:
+        raise ConfigError(f"checkpoint.every_frames: {every!r} is invalid (allowed: 0 to disable, or a positive integer)")
+    if "checkpoint" in cfg:
+        _positive(cfg, "checkpoint.keep_last", integer=True)
+
+
+def check_output_dir(path) -> None:
+    """The run directory exists and is writable, or can be created."""
+    import os
+    from pathlib import Path
+
+    path = Path(path).absolute()
+    if path.exists() and not path.is_dir():
+        raise ConfigError(f"hydra.run.dir: '{path}' is a file (allowed: a writable directory)")
+    existing = path
+    while not existing.exists():
+        existing = existing.parent
+    if not existing.is_dir() or not os.access(existing, os.W_OK | os.X_OK):
+        raise ConfigError(f"hydra.run.dir: '{path}' cannot be written ('{existing}' is not writable; allowed: a writable directory)")

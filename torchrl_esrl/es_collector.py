@@ -203,3 +203,7 @@ def default_backend(env_id: str) -> str:
         if name != "gym" and supports is not None and supports(env_id):
             return name
     return "gym"
+
+
+# Fast backends register themselves in BACKENDS; imported last because they use the names above.
+from torchrl_esrl import mujoco_batch as _mujoco_batch  # noqa: E402,F401

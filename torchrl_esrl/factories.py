@@ -54,6 +54,7 @@ def make_td3(cfg: DictConfig, actor, critic, action_spec) -> TD3:
         policy_delay=c.policy_delay,
         exploration_noise=c.exploration_noise,
         loss_function=c.loss_function,
+        fast=c.fast,
     )
 
 

@@ -1,0 +1,76 @@
+"""Helpers shared by the benchmarks: interleaved timing, synthetic transitions, machine info.
+
+Every figure is a ratio against a baseline measured in the same run: the machine (2 cores) is
+shared, so absolute rates move by 2x between minutes. :func:`interleaved` runs baseline and
+candidates in turn, repetition after repetition, and reports medians.
+"""
+from __future__ import annotations
+
+import os
+
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # before torch loads (see docs/performance.md)
+import platform
+import statistics
+import time
+from collections.abc import Callable, Mapping
+
+import torch
+from tensordict import TensorDict
+
+# Observation / action sizes of the paper's tasks (gymnasium v5).
+SHAPES = {"HalfCheetah-v5": (17, 6), "Ant-v5": (105, 8), "Walker2d-v5": (17, 6), "Hopper-v5": (11, 3)}
+
+
+def transitions(n: int, obs_dim: int, act_dim: int, generator: torch.Generator | None = None) -> TensorDict:
+    """``n`` random transitions with the MultiBuffer's key set (``buffers.TRANSITION_KEYS``)."""
+    g = generator
+    return TensorDict(
+        {
+            "observation": torch.randn(n, obs_dim, generator=g),
+            "action": torch.rand(n, act_dim, generator=g) * 2 - 1,
+            "next": {
+                "observation": torch.randn(n, obs_dim, generator=g),
+                "reward": torch.randn(n, 1, generator=g),
+                "done": torch.zeros(n, 1, dtype=torch.bool),
+                "terminated": torch.zeros(n, 1, dtype=torch.bool),
+                "truncated": torch.zeros(n, 1, dtype=torch.bool),
+            },
+        },
+        batch_size=[n],
+    )
+
+
+def fill(buffer, n: int, obs_dim: int, act_dim: int, chunk: int = 100_000, name: str | None = None) -> None:
+    """Write ``n`` random transitions into a TorchRL buffer (or one MultiBuffer part) in chunks."""
+    g = torch.Generator().manual_seed(0)
+    for start in range(0, n, chunk):
+        data = transitions(min(chunk, n - start), obs_dim, act_dim, g)
+        buffer.extend(data) if name is None else buffer.extend(data, name)
+
+
+def interleaved(methods: Mapping[str, Callable[[], None]], calls: int, repeats: int, warmup: int = 3) -> dict[str, dict]:
+    """Seconds per call of each method: ``repeats`` rounds, each timing ``calls`` calls of every
+    method in turn; median and all rounds reported."""
+    for fn in methods.values():
+        for _ in range(warmup):
+            fn()
+    rounds: dict[str, list[float]] = {name: [] for name in methods}
+    for _ in range(repeats):
+        for name, fn in methods.items():
+            start = time.perf_counter()
+            for _ in range(calls):
+                fn()
+            rounds[name].append((time.perf_counter() - start) / calls)
+    return {name: {"s_per_call": statistics.median(r), "best_s_per_call": min(r), "rounds_s_per_call": r} for name, r in rounds.items()}
+
+
+def machine() -> dict:
+    return {
+        "cpus": os.cpu_count(),
+        "processor": platform.processor() or platform.machine(),
+        "torch": torch.__version__,
+        "torch_threads": torch.get_num_threads(),
+        "OMP_WAIT_POLICY": os.environ.get("OMP_WAIT_POLICY"),
+        "cuda": torch.cuda.is_available(),
+        "load_average": os.getloadavg(),
+    }

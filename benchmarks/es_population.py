@@ -1,0 +1,187 @@
+"""ES population evaluation throughput (issue 3): env-steps/s of one generation of full episodes.
+
+120 offspring of the paper's 2x256 tanh actor (sigma 0.005 perturbations of a random actor),
+one episode each (up to 1000 steps), measured in one run for:
+
+  batched    the ``mujoco_batch`` backend (mujoco.batch.Batch + one batched forward per step)
+  raw        the same mujoco.batch stepping with fixed controls: no policy, no rewards (the ceiling)
+  serial     one gymnasium env, offspring after offspring, torch forward per step with the
+             offspring's weights loaded into an actor
+  lockstep   the reference ``gym`` backend (P gymnasium envs, one batched forward per step)
+
+Usage: ``python -m benchmarks.es_population [--quick] [--sweep] [--out PATH]``.
+
+OpenMP threads that spin after a torch forward steal the cores MuJoCo's batch threads need next
+(measured: physics 2x slower inside the rollout than alone). ``OMP_WAIT_POLICY`` is read when
+torch loads, so it is set here, before the import, unless the caller set it; the JSON records it.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+import platform
+import sys
+import time
+from pathlib import Path
+
+if __package__ in (None, ""):  # run as a script: make the repository importable
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+import gymnasium as gym
+import mujoco
+import mujoco.batch
+import numpy as np
+import torch
+from torchrl.data import Bounded
+
+from torchrl_esrl.es_collector import GymBackend
+from torchrl_esrl.mujoco_batch import MujocoBatchBackend
+from torchrl_esrl.networks import PopulationActor, flat_parameters, load_flat_parameters, make_actor
+
+ENVS = ["HalfCheetah-v5", "Walker2d-v5"]
+
+
+def make_population(env_id: str, members: int, sigma: float = 0.005, seed: int = 0):
+    env = gym.make(env_id)
+    torch.manual_seed(seed)
+    low, high = torch.as_tensor(env.action_space.low), torch.as_tensor(env.action_space.high)
+    actor = make_actor(env.observation_space.shape[0], Bounded(low, high, shape=low.shape))
+    theta = flat_parameters(actor)
+    params = (theta + sigma * torch.randn(members, theta.numel())).contiguous()
+    return actor, params
+
+
+def time_backend(backend, params, seeds) -> dict:
+    start = time.perf_counter()
+    generation = backend.rollout(params, seeds)
+    seconds = time.perf_counter() - start
+    return {"steps": generation.frames, "seconds": seconds, "steps_per_s": generation.frames / seconds,
+            "mean_return": float(generation.returns.mean()), "mean_length": float(generation.lengths.float().mean())}
+
+
+def time_raw_physics(env_id: str, members: int, steps: int, seeds, nthread: int) -> dict:
+    """mujoco.batch stepping alone: gymnasium's initial states, fixed random controls, every member for ``steps``."""
+    env = gym.make(env_id).unwrapped
+    batch = mujoco.batch.Batch(env.model, members, nthread)
+    row = np.empty(batch.nstate)
+    for p, seed in enumerate(seeds):
+        env.reset(seed=int(seed))
+        mujoco.mj_getState(env.model, env.data, row, mujoco.mjtState.mjSTATE_INTEGRATION)
+        batch.state[p] = row
+    rng = np.random.default_rng(0)
+    batch.bind("ctrl")[:] = rng.uniform(-0.5, 0.5, (members, env.model.nu))
+    start = time.perf_counter()
+    for _ in range(steps):
+        batch.step(nstep=env.frame_skip)
+    seconds = time.perf_counter() - start
+    return {"steps": members * steps, "seconds": seconds, "steps_per_s": members * steps / seconds}
+
+
+@torch.no_grad()
+def time_serial(env_id: str, actor, params, seeds, steps: int) -> dict:
+    """The plain way: one env, one offspring after another, a torch forward per step."""
+    env = gym.make(env_id, max_episode_steps=steps)
+    mlp = actor[0].module
+    low, high = actor[1].action_low, actor[1].action_high
+    total = 0
+    start = time.perf_counter()
+    for p, seed in enumerate(seeds):
+        load_flat_parameters(actor, params[p])
+        obs, _ = env.reset(seed=int(seed))
+        while True:
+            x = torch.as_tensor(obs, dtype=torch.float32)
+            action = (low + (high - low) * (mlp(x).tanh() + 1) / 2).numpy()
+            obs, _, term, trunc, _ = env.step(action)
+            total += 1
+            if term or trunc:
+                break
+    seconds = time.perf_counter() - start
+    return {"steps": total, "seconds": seconds, "steps_per_s": total / seconds}
+
+
+def best_of(repeats: int, measure) -> dict:
+    """The fastest of ``repeats`` runs (the machine may be shared); every run's steps/s is kept."""
+    runs = [measure() for _ in range(repeats)]
+    best = max(runs, key=lambda r: r["steps_per_s"])
+    return best | {"runs_steps_per_s": [round(r["steps_per_s"]) for r in runs]}
+
+
+def run(env_id: str, members: int, steps: int, nthread: int, sweep: bool, repeats: int = 1) -> dict:
+    actor, params = make_population(env_id, members)
+    policy = PopulationActor(actor)
+    seeds = list(range(1000, 1000 + members))
+    batched_backend = MujocoBatchBackend(env_id, policy, max_episode_steps=steps, nthread=nthread)
+    batched_backend.rollout(params[:2], seeds[:2])  # warm-up (imports, allocator)
+    lockstep_backend = GymBackend(env_id, policy, max_episode_steps=steps)
+    results = {
+        "batched": best_of(repeats, lambda: time_backend(batched_backend, params, seeds)),
+        "raw": best_of(repeats, lambda: time_raw_physics(env_id, members, steps, seeds, nthread)),
+        "serial": best_of(repeats, lambda: time_serial(env_id, actor, params, seeds, steps)),
+        "lockstep": best_of(repeats, lambda: time_backend(lockstep_backend, params, seeds)),
+    }
+    if sweep:
+        variants = {}
+        for torch_threads in (1, 2):
+            for mj_threads in (1, 2):
+                for persistent in (False, True):
+                    torch.set_num_threads(torch_threads)
+                    backend = MujocoBatchBackend(env_id, policy, max_episode_steps=steps, nthread=mj_threads, persistent=persistent)
+                    name = f"torch{torch_threads}_mj{mj_threads}_{'persistent' if persistent else 'shared'}"
+                    variants[name] = time_backend(backend, params, seeds)
+        backend = MujocoBatchBackend(env_id, policy, max_episode_steps=steps, nthread=nthread, compact_finished=True)
+        variants["compact_finished"] = time_backend(backend, params, seeds)
+        torch.set_num_threads(nthread)
+        results["sweep"] = variants
+    return results
+
+
+def main(argv=None) -> dict:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--quick", action="store_true", help="smoke run: 16 members x 200 steps")
+    parser.add_argument("--members", type=int, default=None)
+    parser.add_argument("--steps", type=int, default=None)
+    parser.add_argument("--nthread", type=int, default=os.cpu_count() or 1, help="MuJoCo batch threads")
+    parser.add_argument("--torch-threads", type=int, default=None, help="torch.set_num_threads (default: torch's)")
+    parser.add_argument("--sweep", action="store_true", help="also time thread counts / persistent / compaction variants")
+    parser.add_argument("--envs", nargs="+", default=ENVS)
+    parser.add_argument("--repeats", type=int, default=2, help="runs per method; the fastest is reported")
+    parser.add_argument("--out", default="benchmarks/results/es_population.json")
+    args = parser.parse_args(argv)
+    members = args.members or (16 if args.quick else 120)
+    steps = args.steps or (200 if args.quick else 1000)
+    if args.torch_threads:
+        torch.set_num_threads(args.torch_threads)
+    report = {
+        "machine": {"cpus": os.cpu_count(), "processor": platform.processor() or platform.machine(),
+                    "torch": torch.__version__, "mujoco": mujoco.__version__, "gymnasium": gym.__version__,
+                    "torch_threads": torch.get_num_threads(), "mujoco_threads": args.nthread,
+                    "OMP_WAIT_POLICY": os.environ.get("OMP_WAIT_POLICY")},
+        "members": members, "max_episode_steps": steps, "sigma": 0.005, "actor": "2x256 tanh",
+        "command": " ".join(["python -m benchmarks.es_population", *(argv if argv is not None else sys.argv[1:])]),
+        "load_average_before": os.getloadavg(),
+        "envs": {},
+    }
+    header = f"{'env':16s} {'method':10s} {'steps':>8s} {'seconds':>8s} {'steps/s':>9s} {'vs raw':>7s} {'vs serial':>9s}"
+    print(header)
+    for env_id in args.envs:
+        results = run(env_id, members, steps, args.nthread, args.sweep, args.repeats)
+        raw, serial = results["raw"]["steps_per_s"], results["serial"]["steps_per_s"]
+        rows = {k: v for k, v in results.items() if k != "sweep"} | {f"sweep:{k}": v for k, v in results.get("sweep", {}).items()}
+        for method, r in rows.items():
+            r["vs_raw"], r["vs_serial"] = r["steps_per_s"] / raw, r["steps_per_s"] / serial
+            print(f"{env_id:16s} {method:10s} {r['steps']:8d} {r['seconds']:8.2f} {r['steps_per_s']:9.0f} "
+                  f"{r['vs_raw']:7.2f} {r['vs_serial']:9.2f}")
+        report["envs"][env_id] = results
+    report["load_average_after"] = os.getloadavg()
+    out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(report, indent=2))
+    print(f"wrote {out}")
+    return report
+
+
+if __name__ == "__main__":
+    main()

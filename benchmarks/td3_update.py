@@ -1,0 +1,134 @@
+"""TD3 update rate: TorchRL TD3 (torchrl_esrl.td3.TD3) vs a hand-written plain PyTorch TD3 (figure 2).
+
+Batch 256 from a MultiBuffer (0.5:0.2:0.3, three full HalfCheetah-shaped buffers), the paper's
+networks (actor 17-256-256-6 tanh, twin critics 23-256-256-1 relu), Adam 3e-4, gamma 0.99,
+tau 0.005, target smoothing 0.2 clipped at 0.5, policy delay 2. Sampling is included in every
+method. Methods, interleaved in one run:
+
+  plain         Fujimoto-style TD3 in plain PyTorch (nn.Sequential, separate target copies,
+                default Adam, per-parameter soft update): the baseline
+  plain_fused   the same with fused Adam (reference: what the baseline gets from the same trick)
+  torchrl_stock TD3(fast=False): TorchRL TD3Loss + SoftUpdate + default Adam
+  torchrl_fast  TD3() default: TD3LossQ1Actor + ForeachSoftUpdate + fused Adam
+  torchrl_fast_foreach  the same with foreach Adam
+
+Goal: torchrl_fast >= 1.0x plain. Usage: ``python -m benchmarks.td3_update [--quick] [--out PATH]``.
+"""
+from __future__ import annotations
+
+import argparse
+import copy
+import json
+import sys
+from pathlib import Path
+
+if __package__ in (None, ""):
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from benchmarks.common import SHAPES, fill, interleaved, machine  # noqa: E402  (sets OMP_WAIT_POLICY)
+
+import torch  # noqa: E402
+import torch.nn.functional as F  # noqa: E402
+from torch import nn  # noqa: E402
+from torchrl.data import Bounded  # noqa: E402
+
+from torchrl_esrl.buffers import MultiBuffer  # noqa: E402
+from torchrl_esrl.networks import make_actor, make_critic  # noqa: E402
+from torchrl_esrl.td3 import TD3  # noqa: E402
+
+
+def _mlp(inputs: int, outputs: int, activation, squash: bool = False) -> nn.Sequential:
+    layers = [nn.Linear(inputs, 256), activation(), nn.Linear(256, 256), activation(), nn.Linear(256, outputs)]
+    return nn.Sequential(*layers, *([nn.Tanh()] if squash else []))
+
+
+class PlainTD3:
+    """TD3 (Fujimoto et al. 2018) in plain PyTorch, action bounds [-1, 1] as HalfCheetah's."""
+
+    def __init__(self, obs_dim: int, act_dim: int, lr=3e-4, gamma=0.99, tau=0.005, policy_noise=0.2, noise_clip=0.5, policy_delay=2, fused=False):
+        self.actor = _mlp(obs_dim, act_dim, nn.Tanh, squash=True)
+        self.q1, self.q2 = _mlp(obs_dim + act_dim, 1, nn.ReLU), _mlp(obs_dim + act_dim, 1, nn.ReLU)
+        self.actor_t, self.q1_t, self.q2_t = (copy.deepcopy(m).requires_grad_(False) for m in (self.actor, self.q1, self.q2))
+        options = {"fused": True} if fused else {}
+        self.actor_opt = torch.optim.Adam(self.actor.parameters(), lr=lr, **options)
+        self.critic_opt = torch.optim.Adam([*self.q1.parameters(), *self.q2.parameters()], lr=lr, **options)
+        self.gamma, self.tau, self.noise, self.clip, self.delay, self.updates = gamma, tau, policy_noise, noise_clip, policy_delay, 0
+
+    def update(self, batch) -> None:
+        s, a, r = batch["observation"], batch["action"], batch["next", "reward"]
+        s2, not_done = batch["next", "observation"], 1 - batch["next", "terminated"].float()
+        with torch.no_grad():
+            noise = (torch.randn_like(a) * self.noise).clamp(-self.clip, self.clip)
+            a2 = (self.actor_t(s2) + noise).clamp(-1, 1)
+            sa2 = torch.cat([s2, a2], -1)
+            target = r + self.gamma * not_done * torch.min(self.q1_t(sa2), self.q2_t(sa2))
+        sa = torch.cat([s, a], -1)
+        critic_loss = F.mse_loss(self.q1(sa), target) + F.mse_loss(self.q2(sa), target)
+        self.critic_opt.zero_grad()
+        critic_loss.backward()
+        self.critic_opt.step()
+        self.updates += 1
+        if self.updates % self.delay == 0:
+            actor_loss = -self.q1(torch.cat([s, self.actor(s)], -1)).mean()
+            self.actor_opt.zero_grad()
+            actor_loss.backward()
+            self.actor_opt.step()
+            with torch.no_grad():
+                for net, target_net in ((self.actor, self.actor_t), (self.q1, self.q1_t), (self.q2, self.q2_t)):
+                    for p, tp in zip(net.parameters(), target_net.parameters()):
+                        tp.data.copy_(self.tau * p.data + (1 - self.tau) * tp.data)
+
+
+def run(capacity: int = 1_000_000, repeats: int = 7, calls: int = 50, env_id: str = "HalfCheetah-v5") -> dict:
+    obs_dim, act_dim = SHAPES[env_id]
+    buffer = MultiBuffer(ratio=(0.5, 0.2, 0.3), capacity=capacity, batch_size=256)
+    for name in buffer.names:
+        fill(buffer, capacity, obs_dim, act_dim, name=name)
+    spec = Bounded(-torch.ones(act_dim), torch.ones(act_dim), shape=(act_dim,))
+
+    def torchrl(**kwargs):
+        torch.manual_seed(0)
+        td3 = TD3(make_actor(obs_dim, spec), make_critic(obs_dim, act_dim), spec, **kwargs)
+        return lambda: td3.update(buffer.sample())
+
+    def plain(**kwargs):
+        torch.manual_seed(0)
+        td3 = PlainTD3(obs_dim, act_dim, **kwargs)
+        return lambda: td3.update(buffer.sample())
+
+    methods = {
+        "plain": plain(),
+        "plain_fused": plain(fused=True),
+        "torchrl_stock": torchrl(fast=False),
+        "torchrl_fast": torchrl(),
+        "torchrl_fast_foreach": torchrl(optimizer_impl="foreach"),
+    }
+    timings = interleaved(methods, calls=calls, repeats=repeats, warmup=10)
+    base = timings["plain"]["s_per_call"]
+    for t in timings.values():
+        t["updates_per_s"] = 1 / t["s_per_call"]
+        t["ratio"] = base / t["s_per_call"]  # speed relative to plain: > 1 is faster
+        t["ratio_best"] = timings["plain"]["best_s_per_call"] / t["best_s_per_call"]  # quietest rounds
+    return {"env": env_id, "capacity": capacity, "batch_size": 256, "goal": "torchrl_fast >= 1.0x plain (update rate)",
+            "met": timings["torchrl_fast"]["ratio"] >= 1.0, "methods": timings}
+
+
+def main(argv=None) -> dict:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--quick", action="store_true", help="100k-item buffers, fewer repetitions")
+    parser.add_argument("--repeats", type=int, default=None)
+    parser.add_argument("--calls", type=int, default=None)
+    parser.add_argument("--out", default="benchmarks/results/td3_update.json")
+    args = parser.parse_args(argv)
+    report = run(100_000 if args.quick else 1_000_000, repeats=args.repeats or (3 if args.quick else 9), calls=args.calls or (20 if args.quick else 50))
+    report["machine"] = machine()
+    for name, t in report["methods"].items():
+        print(f"{name:22s} {t['updates_per_s']:8.1f} updates/s  {t['ratio']:5.2f}x plain (best rounds {t['ratio_best']:5.2f}x)")
+    if args.out:
+        Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.out).write_text(json.dumps(report, indent=2))
+    return report
+
+
+if __name__ == "__main__":
+    main()

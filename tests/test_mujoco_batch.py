@@ -1,0 +1,148 @@
+"""The mujoco_batch ES backend reproduces gymnasium v5 episodes (issue 3), on real MuJoCo physics."""
+from __future__ import annotations
+
+import gymnasium as gym
+import numpy as np
+import pytest
+import torch
+from torchrl.data import Bounded
+
+from torchrl_esrl.es_collector import BACKENDS, ESCollector, GymBackend, default_backend
+from torchrl_esrl.mujoco_batch import MujocoBatchBackend
+from torchrl_esrl.networks import PopulationActor, flat_parameters, make_actor
+
+ENV_IDS = ["HalfCheetah-v5", "Walker2d-v5", "Ant-v5", "Swimmer-v5", "Hopper-v5"]
+TERMINATING = {"Walker2d-v5", "Ant-v5", "Hopper-v5"}
+KEYS = [
+    "observation",
+    "action",
+    ("next", "observation"),
+    ("next", "reward"),
+    ("next", "done"),
+    ("next", "terminated"),
+    ("next", "truncated"),
+    "episode_return",
+    ("collector", "traj_ids"),
+]
+
+
+def population(env_id: str, members: int, sigma: float, seed: int = 0):
+    """A random 2x256 tanh actor and ``members`` Gaussian perturbations of it (wide ones fall early)."""
+    env = gym.make(env_id)
+    torch.manual_seed(seed)
+    low, high = torch.as_tensor(env.action_space.low), torch.as_tensor(env.action_space.high)
+    actor = make_actor(env.observation_space.shape[0], Bounded(low, high, shape=low.shape))
+    theta = flat_parameters(actor)
+    params = theta + sigma * torch.randn(members, theta.numel())
+    return PopulationActor(actor), params.contiguous()
+
+
+@pytest.mark.parametrize("env_id", ENV_IDS)
+def test_same_episodes_as_gym_backend(env_id):
+    steps, members = 120, 6
+    policy, params = population(env_id, members, sigma=0.3)
+    seeds = [11 * p + 3 for p in range(members)]
+    reference = GymBackend(env_id, policy, max_episode_steps=steps).rollout(params, seeds)
+    batched = MujocoBatchBackend(env_id, policy, max_episode_steps=steps).rollout(params, seeds)
+
+    assert torch.equal(batched.lengths, reference.lengths)
+    torch.testing.assert_close(batched.returns, reference.returns, rtol=1e-6, atol=1e-6)
+    assert batched.transitions.batch_size == reference.transitions.batch_size
+    for key in KEYS:
+        torch.testing.assert_close(batched.transitions.get(key), reference.transitions.get(key), rtol=1e-5, atol=1e-5)
+    if env_id in TERMINATING:  # the early-termination path was exercised
+        assert (reference.lengths < steps).any()
+    else:
+        assert (reference.lengths == steps).all()
+
+
+class ScriptedActions:
+    """Stands in for the population actor: plays a fixed action sequence, step after step."""
+
+    def __init__(self, actions: np.ndarray):
+        self.actions = torch.as_tensor(actions)  # [P, T, action_dim]
+        self.t = 0
+
+    def split(self, params):
+        return None
+
+    def __call__(self, params, observations, layers=None):
+        action = self.actions[:, self.t]
+        self.t += 1
+        return action[: observations.shape[0]]
+
+
+@pytest.mark.parametrize("env_id", ENV_IDS)
+def test_fixed_actions_match_a_raw_gymnasium_loop(env_id):
+    steps, members = 60, 3
+    env = gym.make(env_id, max_episode_steps=steps)
+    rng = np.random.default_rng(7)
+    # Large actions make Walker2d/Hopper/Ant fall within the budget.
+    actions = rng.uniform(env.action_space.low, env.action_space.high, (members, steps, env.action_space.shape[0]))
+    actions = actions.astype(np.float32)
+    seeds = [5, 6, 7]
+    backend = MujocoBatchBackend(env_id, ScriptedActions(actions), max_episode_steps=steps)
+    generation = backend.rollout(torch.zeros(members, 1), seeds)
+    traj_ids = generation.transitions.get(("collector", "traj_ids"))
+
+    for p, seed in enumerate(seeds):
+        obs, _ = env.reset(seed=seed)
+        observations, rewards, terminated, truncated = [obs], [], [], []
+        for t in range(steps):
+            obs, reward, term, trunc, _ = env.step(actions[p, t])
+            observations.append(obs)
+            rewards.append(reward)
+            terminated.append(term)
+            truncated.append(trunc)
+            if term or trunc:
+                break
+        length = len(rewards)
+        mine = generation.transitions[traj_ids == p]
+        assert int(generation.lengths[p]) == length == mine.batch_size[0]
+        expected_obs = torch.as_tensor(np.array(observations), dtype=torch.float32)
+        torch.testing.assert_close(mine.get("observation"), expected_obs[:-1], rtol=1e-6, atol=1e-6)
+        torch.testing.assert_close(mine.get(("next", "observation")), expected_obs[1:], rtol=1e-6, atol=1e-6)
+        torch.testing.assert_close(mine.get("action"), torch.as_tensor(actions[p, :length]))
+        torch.testing.assert_close(
+            mine.get(("next", "reward")).squeeze(-1), torch.as_tensor(rewards, dtype=torch.float32), rtol=1e-6, atol=1e-6
+        )
+        assert mine.get(("next", "terminated")).squeeze(-1).tolist() == terminated
+        assert mine.get(("next", "truncated")).squeeze(-1).tolist() == truncated
+        assert float(generation.returns[p]) == pytest.approx(float(np.sum(rewards)), rel=1e-9, abs=1e-9)
+
+
+@pytest.mark.parametrize("env_id", ["Walker2d-v5", "Hopper-v5"])
+def test_early_terminated_members_contribute_only_their_steps(env_id):
+    steps, members = 150, 8
+    policy, params = population(env_id, members, sigma=0.3, seed=1)
+    generation = MujocoBatchBackend(env_id, policy, max_episode_steps=steps).rollout(params, list(range(members)))
+    lengths = generation.lengths
+    assert (lengths < steps).any() and len(set(lengths.tolist())) > 1  # members end at different steps
+    traj_ids = generation.transitions.get(("collector", "traj_ids"))
+    assert generation.transitions.batch_size[0] == generation.frames == int(lengths.sum())
+    assert torch.equal(torch.bincount(traj_ids, minlength=members), lengths)
+    assert torch.equal(traj_ids, torch.repeat_interleave(torch.arange(members), lengths))  # member-major
+    done = generation.transitions.get(("next", "done")).squeeze(-1)
+    terminated = generation.transitions.get(("next", "terminated")).squeeze(-1)
+    last = torch.cumsum(lengths, 0) - 1
+    assert done[last].all() and int(done.sum()) == members  # done only on each member's last step
+    assert torch.equal(terminated[last], lengths < steps) and int(terminated.sum()) == int((lengths < steps).sum())
+    rewards = generation.transitions.get(("next", "reward")).squeeze(-1).double()
+    per_member = torch.zeros(members, dtype=torch.float64).index_add_(0, traj_ids, rewards)
+    torch.testing.assert_close(per_member, generation.returns, rtol=1e-5, atol=1e-4)
+
+
+def test_registered_and_chosen_by_default():
+    assert BACKENDS["mujoco_batch"] is MujocoBatchBackend
+    for env_id in ENV_IDS:
+        assert default_backend(env_id) == "mujoco_batch"
+    assert default_backend("Pendulum-v1") == "gym"
+    assert default_backend("InvertedPendulum-v5") == "gym"
+    policy, params = population("HalfCheetah-v5", 2, sigma=0.0)
+    env = gym.make("HalfCheetah-v5")
+    low, high = torch.as_tensor(env.action_space.low), torch.as_tensor(env.action_space.high)
+    actor = make_actor(17, Bounded(low, high, shape=low.shape))
+    collector = ESCollector("halfcheetah", actor, max_episode_steps=20, seed=3)
+    assert isinstance(collector.backend, MujocoBatchBackend)
+    generation = collector.evaluate(params[:, : collector.population_actor.num_parameters])
+    assert generation.frames == 40 and collector.frames == 40
