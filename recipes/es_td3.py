@@ -10,7 +10,6 @@ its Hydra run directory.
 from __future__ import annotations
 
 import sys
-import time
 from pathlib import Path
 
 import hydra
@@ -22,7 +21,6 @@ from tqdm.auto import tqdm
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # run from a checkout without installing
 
 from torchrl_esrl.config import ConfigError, validate_config  # noqa: E402
-from torchrl_esrl.envs import quiet_logs  # noqa: E402
 from torchrl_esrl.factories import (  # noqa: E402
     make_actor_critic,
     make_es,
@@ -33,18 +31,21 @@ from torchrl_esrl.factories import (  # noqa: E402
     make_td3_batches,
     make_threshold,
     make_train_env,
-    seed_everything,
 )
-from torchrl_esrl.metrics import MetricsLog, write_json  # noqa: E402
+from torchrl_esrl.harness import RunHarness  # noqa: E402
+from torchrl_esrl.metrics import METRIC_COLUMNS  # noqa: E402
 from torchrl_esrl.networks import flat_parameters  # noqa: E402
 from torchrl_esrl.td3 import td3_phase  # noqa: E402
 
 
 def train(cfg: DictConfig, run_dir: Path) -> dict:
-    """Run Algorithm 1 and return the summary written to ``summary.json``."""
-    quiet_logs()
-    seed_everything(cfg.seed)
-    start = time.perf_counter()
+    """Run Algorithm 1 and return the summary written to ``summary.json``.
+
+    ``buffer.mode=shared`` is the single-buffer ablation (ERL-style): ES and TD3 transitions
+    go to one buffer, no good/bad split.
+    """
+    shared_buffer = cfg.buffer.get("mode", "multi") == "shared"
+    harness = RunHarness(cfg, run_dir, algorithm="es_td3_shared" if shared_buffer else "es_td3_buffers", columns=METRIC_COLUMNS)
 
     # Initialise: TD3 actor pi, critics Q0, Q1 and targets; ES mean mu and sigma; MultiBuffer.
     env = make_train_env(cfg)
@@ -56,11 +57,9 @@ def train(cfg: DictConfig, run_dir: Path) -> dict:
     es_collector = make_es_collector(cfg, actor)
     threshold = make_threshold(cfg)  # best = -inf
     overwrite = make_overwrite_rule(cfg)
-    log = MetricsLog(run_dir, backend=cfg.logger.backend, experiment_name=cfg.experiment_name)
+    harness.attach_actor(actor)
+    evaluate = harness.evaluate  # deterministic episodes of one flat actor, the same for every recipe
     td3_frames = 0
-
-    def evaluate(vector: torch.Tensor, episodes: int) -> float:
-        return es_collector.evaluate_policy(vector, episodes).returns.mean().item()
 
     bar = tqdm(total=cfg.iterations, desc="ES-TD3Buffers", unit="it", disable=not cfg.logger.progress)
     for iteration in range(cfg.iterations):
@@ -84,8 +83,11 @@ def train(cfg: DictConfig, run_dir: Path) -> dict:
             population = es.ask()
             generation = es_collector.evaluate(population)
             good = threshold.route(generation.returns)
-            buffer.extend(generation.transitions[generation.member_mask(good)], "good")
-            buffer.extend(generation.transitions[generation.member_mask(~good)], "bad")
+            if shared_buffer:
+                buffer.extend(generation.transitions, "noisy")  # ablation: the one shared buffer
+            else:
+                buffer.extend(generation.transitions[generation.member_mask(good)], "good")
+                buffer.extend(generation.transitions[generation.member_mask(~good)], "bad")
             es.tell(generation.returns)
             generation_returns.append(generation.returns)
         es_return = evaluate(es.mean.detach(), cfg.eval.episodes)
@@ -97,11 +99,13 @@ def train(cfg: DictConfig, run_dir: Path) -> dict:
 
         all_returns = torch.cat(generation_returns) if generation_returns else torch.zeros(1)
         sizes = buffer.sizes()
-        log.log(
-            {
-                "iteration": iteration,
-                "td3_frames": td3_frames,
-                "es_frames": es_collector.frames,
+        harness.log(
+            iteration,
+            td3_frames,
+            es_collector.frames,
+            # The returned policy at this checkpoint is the ES mean after the overwrite rule.
+            eval_return=td3_return if decision.overwrite else es_return,
+            **{
                 "td3_updates": td3.updates,
                 "td3_eval_return": td3_return,
                 "es_eval_return": es_return,
@@ -117,8 +121,8 @@ def train(cfg: DictConfig, run_dir: Path) -> dict:
                 "es_generation_max_return": all_returns.max().item(),
                 "critic_loss": td3_stats.get("critic_loss", ""),
                 "actor_loss": td3_stats.get("actor_loss", ""),
-                "wall_time_s": round(time.perf_counter() - start, 2),
-            }
+                "buffer_mode": "shared" if shared_buffer else "multi",
+            },
         )
         bar.update(1)
         bar.set_postfix(td3=f"{td3_return:.0f}", es=f"{es_return:.0f}", overwrite=decision.overwrite)
@@ -128,20 +132,17 @@ def train(cfg: DictConfig, run_dir: Path) -> dict:
     # Return: mu (the paper's output), evaluated next to the TD3 actor.
     torch.save(es.mean.detach().clone(), run_dir / "es_mean.pt")
     torch.save(actor.state_dict(), run_dir / "td3_actor.pt")
-    summary = {
-        "env": cfg.env.id,
-        "seed": cfg.seed,
-        "ratio": list(cfg.buffer.ratio),
-        "iterations": cfg.iterations,
-        "td3_frames": td3_frames,
-        "es_frames": es_collector.frames,
-        "td3_updates": td3.updates,
-        "final_es_mean_return": evaluate(es.mean.detach(), cfg.eval.final_episodes),
-        "final_td3_actor_return": evaluate(flat_parameters(actor), cfg.eval.final_episodes),
-        "overwrites": sum(d.overwrite for d in overwrite.decisions),
-        "wall_time_s": round(time.perf_counter() - start, 2),
-    }
-    write_json(run_dir / "summary.json", summary)
+    summary = harness.finish(
+        es.mean.detach(),
+        {
+            "ratio": list(buffer.ratio),  # (0, 0, 1) in shared mode
+            "buffer_mode": "shared" if shared_buffer else "multi",
+            "td3_updates": td3.updates,
+            "final_td3_actor_return": evaluate(flat_parameters(actor), cfg.eval.final_episodes),
+            "overwrites": sum(d.overwrite for d in overwrite.decisions),
+        },
+        alias="final_es_mean_return",
+    )
     return summary
 
 
