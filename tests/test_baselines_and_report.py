@@ -32,8 +32,9 @@ TINY = [
 
 
 def run(script, *overrides):
-    overrides = [o for o in TINY if script == "cem_rl.py" or not o.startswith("cem.")] + list(overrides)
-    result = subprocess.run([sys.executable, str(ROOT / "recipes" / script), *overrides], cwd=ROOT, capture_output=True, text=True, timeout=600)
+    multirun = [o for o in overrides if o == "-m"]  # Hydra wants -m before the overrides
+    overrides = [o for o in TINY if script == "cem_rl.py" or not o.startswith("cem.")] + [o for o in overrides if o != "-m"]
+    result = subprocess.run([sys.executable, str(ROOT / "recipes" / script), *multirun, *overrides], cwd=ROOT, capture_output=True, text=True, timeout=600)
     assert result.returncode == 0, result.stderr[-3000:]
 
 
