@@ -165,6 +165,7 @@ def plot_es_vs_td3(runs: list[dict], out_dir: Path) -> list[Path]:
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from matplotlib.ticker import MaxNLocator
 
     paths = []
     by_env: dict[str, list[dict]] = defaultdict(list)
@@ -185,6 +186,7 @@ def plot_es_vs_td3(runs: list[dict], out_dir: Path) -> list[Path]:
             ratio = run["summary"].get("ratio")
             ax.set_title(f"seed {run['summary']['seed']}, ratio {ratio}", fontsize=9)
             ax.set_xlabel("iteration")
+            ax.xaxis.set_major_locator(MaxNLocator(integer=True))
             ax.grid(alpha=0.3)
         axes[0][0].set_ylabel("evaluation return")
         handles, labels = [], []
