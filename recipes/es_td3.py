@@ -32,7 +32,6 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # run from a check
 from torchrl_esrl.async_es_td3 import BackgroundES  # noqa: E402
 from torchrl_esrl.checkpoint import RunCheckpoint, RunProgress, TD3EnvState, make_deterministic, prepare_run  # noqa: E402
 from torchrl_esrl.config import ConfigError  # noqa: E402
-from torchrl_esrl.envs import quiet_logs  # noqa: E402
 from torchrl_esrl.factories import (  # noqa: E402
     make_actor_critic,
     make_es,
@@ -43,19 +42,25 @@ from torchrl_esrl.factories import (  # noqa: E402
     make_td3_batches,
     make_threshold,
     make_train_env,
-    seed_everything,
 )
 from torchrl_esrl.faults import check_finite, inject_faults_from_env  # noqa: E402
-from torchrl_esrl.metrics import MetricsLog, write_json  # noqa: E402
+from torchrl_esrl.es_phase import es_phase  # noqa: E402
+from torchrl_esrl.harness import RunHarness  # noqa: E402
+from torchrl_esrl.metrics import METRIC_COLUMNS  # noqa: E402
 from torchrl_esrl.networks import flat_parameters  # noqa: E402
 from torchrl_esrl.schema import run_cli  # noqa: E402
 from torchrl_esrl.td3 import td3_phase  # noqa: E402
 
 
 def train(cfg: DictConfig, run_dir: Path) -> dict:
-    """Run Algorithm 1 and return the summary written to ``summary.json``."""
-    quiet_logs()
-    seed_everything(cfg.seed)
+    """Run Algorithm 1 and return the summary written to ``summary.json``.
+
+    ``buffer.mode=shared`` is the single-buffer ablation (ERL-style): ES and TD3 transitions
+    go to one buffer, no good/bad split.
+    """
+    shared_buffer = cfg.buffer.mode == "shared"
+    progress = RunProgress()  # iteration, TD3 frames, the TD3 phase under way, the resumable clock
+    harness = RunHarness(cfg, run_dir, algorithm="es_td3_shared" if shared_buffer else "es_td3_buffers", columns=METRIC_COLUMNS, clock=progress.wall_time)
     make_deterministic()
 
     # Initialise: TD3 actor pi, critics Q0, Q1 and targets; ES mean mu and sigma; MultiBuffer.
@@ -70,16 +75,13 @@ def train(cfg: DictConfig, run_dir: Path) -> dict:
     overwrite = make_overwrite_rule(cfg)
     background_es = None
     if cfg.mode == "async":  # ES generations overlap the TD3 phase; buffer and threshold become lock-guarded
-        background_es, buffer, threshold = BackgroundES.wrap(es, es_collector, buffer, threshold, cfg.es.generations_per_iteration)
-    log = MetricsLog(run_dir, backend=cfg.logger.backend, experiment_name=cfg.experiment_name)
-    progress = RunProgress()  # iteration, TD3 frames, the TD3 phase under way
-    components = dict(progress=progress, td3=td3, exploration=td3.exploration_policy, td3_env=TD3EnvState(collector), buffer=buffer, es=es, es_collector=es_collector, threshold=threshold, overwrite=overwrite)
+        background_es, buffer, threshold = BackgroundES.wrap(es, es_collector, buffer, threshold, cfg.es.generations_per_iteration, shared_buffer)
+    harness.attach_actor(actor)
+    evaluate = harness.evaluate  # deterministic episodes of one flat actor, the same protocol for every recipe
+    components = dict(progress=progress, td3=td3, exploration=td3.exploration_policy, td3_env=TD3EnvState(collector), buffer=buffer, es=es, es_collector=es_collector, evaluator=harness.evaluator, threshold=threshold, overwrite=overwrite)
     checkpoint = RunCheckpoint(run_dir, OmegaConf.to_container(cfg, resolve=True), cfg.checkpoint.every_frames, cfg.checkpoint.keep_last, **components)
     checkpoint.restore()  # continue from the run directory's last checkpoint, if it has one
     inject_faults_from_env(progress, es, buffer)  # tests only: ESRL_INJECT_NAN=<where>@<iteration>
-
-    def evaluate(vector: torch.Tensor, episodes: int) -> float:
-        return es_collector.evaluate_policy(vector, episodes).returns.mean().item()
 
     bar = tqdm(total=cfg.iterations, desc="ES-TD3Buffers", unit="it", disable=not cfg.logger.progress)
     for iteration in range(progress.iteration, cfg.iterations):
@@ -98,20 +100,20 @@ def train(cfg: DictConfig, run_dir: Path) -> dict:
             progress=progress.td3_phase,
         )
         td3_frames = progress.td3_frames + td3_stats["frames"]
-        generation_returns = background_es.join() if background_es is not None else []
+        generation_returns = background_es.join() if background_es is not None else []  # async: ES ran alongside
         td3_return = check_finite("TD3 evaluation return", evaluate(flat_parameters(actor), cfg.eval.episodes))
 
         # --- ES: g generations; offspring trajectories go to good or bad by the threshold (async: done above).
-        for generation_index in range(0 if background_es is not None else cfg.es.generations_per_iteration):
-            bar.set_postfix_str(f"ES {generation_index + 1}/{cfg.es.generations_per_iteration}")
-            population = es.ask()
-            generation = es_collector.evaluate(population)
-            good = threshold.route(generation.returns)
-            buffer.extend(generation.transitions[generation.member_mask(good)], "good")
-            buffer.extend(generation.transitions[generation.member_mask(~good)], "bad")
-            es.tell(generation.returns)  # raises on a non-finite return
-            check_finite("ES mean", es.mean)
-            generation_returns.append(generation.returns)
+        if background_es is None:
+            generation_returns = es_phase(
+                es,
+                es_collector,
+                buffer,
+                threshold,
+                cfg.es.generations_per_iteration,
+                shared_buffer=shared_buffer,
+                on_generation=lambda g: bar.set_postfix_str(f"ES {g + 1}/{cfg.es.generations_per_iteration}"),
+            )
         es_return = check_finite("ES evaluation return", evaluate(es.mean.detach(), cfg.eval.episodes))
 
         # --- Overwrite rule: recentre ES on the TD3 actor if TD3 is ahead on average.
@@ -121,11 +123,13 @@ def train(cfg: DictConfig, run_dir: Path) -> dict:
 
         all_returns = torch.cat(generation_returns) if generation_returns else torch.zeros(1)
         sizes = buffer.sizes()
-        log.log(
-            {
-                "iteration": iteration,
-                "td3_frames": td3_frames,
-                "es_frames": es_collector.frames,
+        harness.log(
+            iteration,
+            td3_frames,
+            es_collector.frames,
+            # The policy returned at this point is the ES mean after the overwrite rule.
+            eval_return=td3_return if decision.overwrite else es_return,
+            **{
                 "td3_updates": td3.updates,
                 "td3_eval_return": td3_return,
                 "es_eval_return": es_return,
@@ -141,8 +145,8 @@ def train(cfg: DictConfig, run_dir: Path) -> dict:
                 "es_generation_max_return": all_returns.max().item(),
                 "critic_loss": td3_stats.get("critic_loss", ""),
                 "actor_loss": td3_stats.get("actor_loss", ""),
-                "wall_time_s": round(progress.wall_time(), 2),
-            }
+                "buffer_mode": cfg.buffer.mode,
+            },
         )
         progress.finish_iteration(td3_frames)
         checkpoint.save()
@@ -156,20 +160,17 @@ def train(cfg: DictConfig, run_dir: Path) -> dict:
     # Return: mu (the paper's output), evaluated next to the TD3 actor.
     torch.save(es.mean.detach().clone(), run_dir / "es_mean.pt")
     torch.save(actor.state_dict(), run_dir / "td3_actor.pt")
-    summary = {
-        "env": cfg.env.id,
-        "seed": cfg.seed,
-        "ratio": list(cfg.buffer.ratio),
-        "iterations": cfg.iterations,
-        "td3_frames": progress.td3_frames,
-        "es_frames": es_collector.frames,
-        "td3_updates": td3.updates,
-        "final_es_mean_return": evaluate(es.mean.detach(), cfg.eval.final_episodes),
-        "final_td3_actor_return": evaluate(flat_parameters(actor), cfg.eval.final_episodes),
-        "overwrites": sum(d.overwrite for d in overwrite.decisions),
-        "wall_time_s": round(progress.wall_time(), 2),
-    }
-    write_json(run_dir / "summary.json", summary)
+    summary = harness.finish(
+        es.mean.detach(),
+        {
+            "ratio": list(buffer.ratio),  # (0, 0, 1) in shared mode
+            "buffer_mode": cfg.buffer.mode,
+            "td3_updates": td3.updates,
+            "final_td3_actor_return": evaluate(flat_parameters(actor), cfg.eval.final_episodes),
+            "overwrites": sum(d.overwrite for d in overwrite.decisions),
+        },
+        alias="final_es_mean_return",
+    )
     return summary
 
 

@@ -76,6 +76,7 @@ def test_multirun_sweeps_the_ratio_one_directory_per_ratio(tmp_path):
         ("es.population_size=7", "es.population_size"),
         ("env.id=Walker3-v5", "env.id"),
         ("buffer.min_size=10", "buffer.min_size"),
+        ("buffer.mode=sharde", "buffer.mode"),
     ],
 )
 def test_bad_config_fails_fast_with_one_line(tmp_path, override, field):

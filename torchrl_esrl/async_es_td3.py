@@ -23,6 +23,8 @@ from concurrent.futures import Future, ThreadPoolExecutor
 
 import torch
 
+from torchrl_esrl.es_phase import es_phase
+
 
 class Guarded:
     """Proxy that runs every method of ``target`` under ``lock`` (attributes are read as they are)."""
@@ -59,20 +61,6 @@ class Guarded:
         return f"Guarded({self._target!r})"
 
 
-def es_generations(es, es_collector, buffer, threshold, generations: int) -> list[torch.Tensor]:
-    """Algorithm 1's ES step: ``generations`` generations, offspring trajectories routed to good/bad."""
-    returns = []
-    for _ in range(generations):
-        population = es.ask()
-        generation = es_collector.evaluate(population)
-        good = threshold.route(generation.returns)
-        buffer.extend(generation.transitions[generation.member_mask(good)], "good")
-        buffer.extend(generation.transitions[generation.member_mask(~good)], "bad")
-        es.tell(generation.returns)
-        returns.append(generation.returns)
-    return returns
-
-
 class BackgroundES:
     """Runs an iteration's ES generations in a background thread.
 
@@ -87,23 +75,24 @@ class BackgroundES:
     Between ``start`` and ``join`` the ES object and the ES collector belong to the thread.
     """
 
-    def __init__(self, es, es_collector, buffer, threshold, generations: int):
+    def __init__(self, es, es_collector, buffer, threshold, generations: int, shared_buffer: bool = False):
         self.es, self.es_collector, self.buffer, self.threshold = es, es_collector, buffer, threshold
         self.generations = int(generations)
+        self.shared_buffer = bool(shared_buffer)
         self.executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="es-generations")
         self.future: Future | None = None
         self.busy_seconds = 0.0
 
     @classmethod
-    def wrap(cls, es, es_collector, buffer, threshold, generations: int):
+    def wrap(cls, es, es_collector, buffer, threshold, generations: int, shared_buffer: bool = False):
         lock = threading.RLock()
         buffer, threshold = Guarded(buffer, lock), Guarded(threshold, lock)
-        return cls(es, es_collector, buffer, threshold, generations), buffer, threshold
+        return cls(es, es_collector, buffer, threshold, generations, shared_buffer), buffer, threshold
 
     def start(self) -> None:
         if self.future is not None:
             raise RuntimeError("BackgroundES.start: the previous iteration's generations were not joined")
-        self.future = self.executor.submit(es_generations, self.es, self.es_collector, self.buffer, self.threshold, self.generations)
+        self.future = self.executor.submit(es_phase, self.es, self.es_collector, self.buffer, self.threshold, self.generations, self.shared_buffer)
 
     def join(self) -> list[torch.Tensor]:
         """Wait for the generations (re-raising their exception, if any) and return their returns."""

@@ -39,6 +39,8 @@ def validate_config(cfg) -> None:
         raise ConfigError(f"buffer.capacity: {cfg.buffer.capacity} is smaller than buffer.batch_size={cfg.buffer.batch_size} (allowed: >= batch_size)")
     if cfg.buffer.min_size < cfg.buffer.batch_size:
         raise ConfigError(f"buffer.min_size: {cfg.buffer.min_size} is smaller than buffer.batch_size={cfg.buffer.batch_size} (allowed: K >= batch_size)")
+    if cfg.buffer.get("mode", "multi") not in ("multi", "shared"):
+        raise ConfigError(f"buffer.mode: {cfg.buffer.mode!r} is invalid (allowed: multi, shared)")
     if not 0 <= cfg.threshold.fraction <= 1:
         raise ConfigError(f"threshold.fraction: {cfg.threshold.fraction} is invalid (allowed: a number in [0, 1])")
     if cfg.get("mode", "sequential") not in ("sequential", "async"):

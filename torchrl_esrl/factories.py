@@ -65,9 +65,12 @@ def make_td3_batches(cfg: DictConfig, env, td3: TD3):
 
 
 def make_multibuffer(cfg: DictConfig) -> MultiBuffer:
+    """The good/bad/noisy MultiBuffer; ``buffer.mode=shared`` gives one buffer for everything
+    (ERL-style ablation: ``ratio=(0, 0, 1)``, ES transitions are written to it too)."""
     c = cfg.buffer
+    shared = c.get("mode", "multi") == "shared"
     return MultiBuffer(
-        ratio=list(c.ratio),
+        ratio=[0.0, 0.0, 1.0] if shared else list(c.ratio),
         capacity=c.capacity,
         batch_size=c.batch_size,
         min_size=c.min_size,

@@ -14,10 +14,19 @@ from pathlib import Path
 
 from torchrl.record.loggers import get_logger
 
-METRIC_COLUMNS = (
+# Columns every recipe writes (torchrl_esrl.harness): the report reads these.
+CORE_COLUMNS = (
     "iteration",
     "td3_frames",
     "es_frames",
+    "total_frames",
+    "eval_return",  # deterministic evaluation of the policy the algorithm returns
+    "wall_time_s",
+)
+
+# ES-TD3Buffers' columns (recipes/es_td3.py).
+METRIC_COLUMNS = (
+    *CORE_COLUMNS[:-1],
     "td3_updates",
     "td3_eval_return",
     "es_eval_return",
@@ -33,6 +42,7 @@ METRIC_COLUMNS = (
     "es_generation_max_return",
     "critic_loss",
     "actor_loss",
+    "buffer_mode",
     "wall_time_s",
 )
 
@@ -58,7 +68,7 @@ class MetricsLog:
             writer.writerow(row)
         self.rows.append(row)
         if self.logger is not None:
-            step = int(row.get("td3_frames") or 0)
+            step = int(row.get("td3_frames") or row.get("iteration") or 0)  # ES alone has no TD3 frames
             for key, value in row.items():
                 if isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value):
                     self.logger.log_scalar(key, float(value), step=step)

@@ -74,6 +74,7 @@ class BufferConfig:
     batch_size: int = MISSING
     min_size: int = MISSING
     renormalize: bool = MISSING
+    mode: str = MISSING
 
 
 @dataclass
@@ -117,6 +118,19 @@ class RayConfig:
 
 
 @dataclass
+class CEMConfig:
+    """CEM-RL baseline (recipes/cem_rl.py, torchrl_esrl/cem.py); unused by ES-TD3Buffers."""
+
+    population_size: int = 10
+    rl_fraction: float = 0.5
+    elite_fraction: float = 0.5
+    sigma_init: float = 1.0e-3
+    damping_init: float = 1.0e-3
+    damping_end: float = 1.0e-5
+    damping_tau: float = 0.95
+
+
+@dataclass
 class ESTD3Config:
     """The whole config of ``recipes/es_td3.py``."""
 
@@ -137,6 +151,7 @@ class ESTD3Config:
     mode: str = "sequential"  # sequential | async (torchrl_esrl/async_es_td3.py)
     ray: RayConfig = field(default_factory=RayConfig)
     checkpoint: CheckpointConfig = field(default_factory=CheckpointConfig)
+    cem: Optional[CEMConfig] = None  # only conf/cem_rl.yaml sets it
 
 
 def register_schema() -> None:

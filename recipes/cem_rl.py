@@ -1,0 +1,90 @@
+"""CEM-RL (Pourchot and Sigaud, ICLR 2019) in the harness of ES-TD3Buffers.
+
+    python recipes/cem_rl.py env=halfcheetah experiment=quick
+
+Each generation (their Algorithm 1): sample a population from the diagonal CEM; once the replay
+buffer is ready, the first half of it is trained by TD3 with the shared critic; every member then
+plays one deterministic episode, its transitions go to the one replay buffer, and the top half
+update the CEM mean and variance. The returned policy is the CEM mean.
+
+Every frame is both a fitness evaluation and a TD3 training frame: all frames are counted as
+``td3_frames`` (``es_frames`` stays 0), and TD3 does one update per frame collected, as in
+recipes/td3.py. One iteration = generations until ``td3.frames_per_iteration`` new frames.
+"""
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import torch
+from omegaconf import DictConfig
+from tqdm.auto import tqdm
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # run from a checkout without installing
+
+from torchrl_esrl.buffers import MultiBuffer  # noqa: E402
+from torchrl_esrl.cem import DiagonalCEM, td3_improve_member  # noqa: E402
+from torchrl_esrl.factories import make_actor_critic, make_es_collector, make_td3, make_train_env  # noqa: E402
+from torchrl_esrl.harness import RunHarness, hydra_main  # noqa: E402
+from torchrl_esrl.networks import flat_parameters  # noqa: E402
+
+
+def train(cfg: DictConfig, run_dir: Path) -> dict:
+    harness = RunHarness(cfg, run_dir, algorithm="cem_rl", columns=("generations", "td3_updates", "population_mean_return", "population_max_return", "critic_loss", "cem_mean_std"))
+    env = make_train_env(cfg)
+    actor, critic = make_actor_critic(cfg, env)
+    td3 = make_td3(cfg, actor, critic, env.action_spec)
+    buffer = MultiBuffer(ratio=(0, 0, 1), capacity=cfg.buffer.capacity, batch_size=cfg.buffer.batch_size, min_size=cfg.buffer.min_size, device=cfg.device)
+    c = cfg.cem
+    cem = DiagonalCEM(
+        flat_parameters(actor),
+        population_size=c.population_size,
+        sigma_init=c.sigma_init,
+        elite_fraction=c.elite_fraction,
+        damping_init=c.damping_init,
+        damping_end=c.damping_end,
+        damping_tau=c.damping_tau,
+        generator=torch.Generator().manual_seed(int(cfg.seed) + 1),
+    )
+    rl_members = int(c.population_size * c.rl_fraction)
+    population_collector = make_es_collector(cfg, actor)  # one deterministic episode per member
+    harness.attach_actor(actor)
+
+    frames, last_generation_frames = 0, 0
+    for iteration in tqdm(range(cfg.iterations), desc="CEM-RL", unit="it", disable=not cfg.logger.progress):
+        iteration_frames, returns, critic_losses = 0, [], []
+        while iteration_frames < cfg.td3.frames_per_iteration:
+            population = cem.ask()
+            # RL half: TD3 steps with the shared critic, as many updates in all as frames last generation.
+            if buffer.ready() and rl_members > 0:
+                updates_per_member = round(last_generation_frames * cfg.td3.updates_per_frame / rl_members)
+                for member in range(rl_members):
+                    population[member], losses = td3_improve_member(td3, buffer, population[member], updates_per_member)
+                    critic_losses += losses
+            generation = population_collector.evaluate(population)
+            buffer.extend(generation.transitions, "noisy")
+            cem.tell(population, generation.returns)
+            last_generation_frames = generation.frames
+            iteration_frames += generation.frames
+            returns.append(generation.returns)
+        frames += iteration_frames
+        returns = torch.cat(returns)
+        harness.log(
+            iteration,
+            frames,
+            0,
+            eval_return=harness.evaluate(cem.mean),
+            generations=cem.generation,
+            td3_updates=td3.updates,
+            population_mean_return=returns.mean().item(),
+            population_max_return=returns.max().item(),
+            critic_loss=sum(critic_losses) / len(critic_losses) if critic_losses else "",
+            cem_mean_std=cem.var.sqrt().mean().item(),
+        )
+    return harness.finish(cem.mean, {"generations": cem.generation, "td3_updates": td3.updates, "population_size": int(c.population_size)})
+
+
+main = hydra_main(train, config_name="cem_rl")
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,30 @@
+"""The report over run or multirun directories (logic in torchrl_esrl/report.py).
+
+    python recipes/report.py outputs/ multirun/2026-11-22 --out report/
+
+Writes results.csv and results.md (Table 1: mean, std, median per env x algorithm, plus the IQM
+with a 95% bootstrap CI), curves_<env>.png, es_vs_td3_<env>.png and ratio_sweep_<env>.png.
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # run from a checkout without installing
+
+from torchrl_esrl.report import make_report  # noqa: E402
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("paths", nargs="+", help="run directories or folders holding runs (searched recursively)")
+    parser.add_argument("--out", default="report", help="output folder (default: report/)")
+    args = parser.parse_args(argv)
+    report = make_report(args.paths, args.out)
+    print(Path(report["table_md"]).read_text())
+    print(f"{report['runs']} runs -> {args.out}: " + ", ".join(p.name for p in report["figures"]))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,137 @@
+"""The baseline recipes (TD3, OpenAI-ES, CEM-RL, single-buffer ES-TD3) and the report, on real
+short MuJoCo runs. One module-scoped fixture runs every recipe once; the report reads them."""
+import csv
+import json
+import math
+import statistics
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from torchrl_esrl.metrics import CORE_COLUMNS, read_metrics
+
+ROOT = Path(__file__).resolve().parents[1]
+TINY = [
+    "experiment=quick",
+    "env=halfcheetah",
+    "iterations=2",
+    "td3.frames_per_iteration=400",
+    "td3.frames_per_batch=50",
+    "buffer.min_size=256",
+    "buffer.capacity=5000",
+    "es.population_size=4",
+    "es.generations_per_iteration=2",
+    "cem.population_size=4",
+    "env.max_episode_steps=100",
+    "eval.episodes=2",
+    "eval.final_episodes=2",
+    "logger.progress=false",
+]
+
+
+def run(script, *overrides):
+    multirun = [o for o in overrides if o == "-m"]  # Hydra wants -m before the overrides
+    overrides = [o for o in TINY if script == "cem_rl.py" or not o.startswith("cem.")] + [o for o in overrides if o != "-m"]
+    result = subprocess.run([sys.executable, str(ROOT / "recipes" / script), *multirun, *overrides], cwd=ROOT, capture_output=True, text=True, timeout=600)
+    assert result.returncode == 0, result.stderr[-3000:]
+
+
+@pytest.fixture(scope="module")
+def runs(tmp_path_factory):
+    root = tmp_path_factory.mktemp("runs")
+    run("td3.py", "seed=0", f"hydra.run.dir={root}/td3_0")
+    run("td3.py", "seed=1", f"hydra.run.dir={root}/td3_1")
+    run("es.py", "seed=0", f"hydra.run.dir={root}/es_0")
+    run("es.py", "seed=1", f"hydra.run.dir={root}/es_1")
+    run("cem_rl.py", "seed=0", f"hydra.run.dir={root}/cem_0")
+    run("es_td3.py", "seed=0", "buffer.mode=shared", f"hydra.run.dir={root}/shared_0")
+    run("es_td3.py", "-m", "seed=0", "buffer.ratio=[0.5,0.2,0.3],[0.2,0.2,0.6]", f"hydra.sweep.dir={root}/sweep")
+    return root
+
+
+def load(run_dir):
+    return read_metrics(run_dir / "metrics.csv"), json.loads((run_dir / "summary.json").read_text())
+
+
+def check_core(rows, summary, algorithm):
+    assert set(CORE_COLUMNS) <= set(rows[0])
+    assert [r["iteration"] for r in rows] == [0, 1]
+    assert all(math.isfinite(r["eval_return"]) for r in rows)
+    assert all(r["total_frames"] == r["td3_frames"] + r["es_frames"] for r in rows)
+    assert summary["algorithm"] == algorithm and summary["env"] == "HalfCheetah-v5"
+    assert math.isfinite(summary["final_return"]) and summary["td3_frames"] == rows[-1]["td3_frames"]
+
+
+def test_td3_recipe_one_buffer_no_es(runs):
+    rows, summary = load(runs / "td3_0")
+    check_core(rows, summary, "td3")
+    assert [r["td3_frames"] for r in rows] == [400, 800] and all(r["es_frames"] == 0 for r in rows)
+    # learning starts once the buffer holds K=256 (after 300 frames), then one update per frame
+    assert [r["td3_updates"] for r in rows] == [150, 550]
+    assert summary["seed"] == 0 and load(runs / "td3_1")[1]["seed"] == 1
+    assert load(runs / "td3_1")[1]["final_return"] != summary["final_return"]  # seeds differ
+
+
+def test_es_recipe_no_td3(runs):
+    rows, summary = load(runs / "es_0")
+    check_core(rows, summary, "es")
+    assert all(r["td3_frames"] == 0 for r in rows)
+    assert [r["es_frames"] for r in rows] == [800, 1600]  # 4 offspring x 100 steps x 2 generations
+    assert [r["es_generations"] for r in rows] == [2, 4]
+
+
+def test_cem_rl_recipe_trains_half_the_population(runs):
+    rows, summary = load(runs / "cem_0")
+    check_core(rows, summary, "cem_rl")
+    # one generation of 4 x 100 frames per iteration; every frame enters the TD3 buffer
+    assert [r["td3_frames"] for r in rows] == [400, 800] and [r["generations"] for r in rows] == [1, 2]
+    # generation 1: buffer empty, no TD3; generation 2: 2 members x 400/2 updates
+    assert [r["td3_updates"] for r in rows] == [0, 400]
+
+
+def test_shared_buffer_ablation_puts_everything_in_one_buffer(runs):
+    rows, summary = load(runs / "shared_0")
+    check_core(rows, summary, "es_td3_shared")
+    assert summary["buffer_mode"] == "shared" and summary["ratio"] == [0.0, 0.0, 1.0]
+    assert all(r["good_size"] == 0 and r["bad_size"] == 0 for r in rows)
+    assert rows[-1]["noisy_size"] == rows[-1]["td3_frames"] + rows[-1]["es_frames"] == 800 + 1600
+
+
+def test_es_td3_writes_the_core_columns_and_the_returned_policy(runs):
+    for run_dir in sorted((runs / "sweep").glob("*/")):
+        rows, summary = load(run_dir)
+        check_core(rows, summary, "es_td3_buffers")
+        for r in rows:  # the returned policy is the ES mean after the overwrite rule
+            assert r["eval_return"] == (r["td3_eval_return"] if r["overwritten"] else r["es_eval_return"])
+        assert summary["final_es_mean_return"] == summary["final_return"]
+
+
+def test_report_table_matches_the_runs_and_writes_figures(runs, tmp_path):
+    result = subprocess.run([sys.executable, str(ROOT / "recipes" / "report.py"), str(runs), "--out", str(tmp_path)], cwd=ROOT, capture_output=True, text=True, timeout=300)
+    assert result.returncode == 0, result.stderr[-3000:]
+    with (tmp_path / "results.csv").open() as handle:
+        table = {row["algorithm"]: row for row in csv.DictReader(handle)}
+    assert set(table) == {"td3", "es", "cem_rl", "es_td3_shared", "es_td3_buffers"}
+    finals = [load(runs / d)[1]["final_return"] for d in ("td3_0", "td3_1")]
+    td3 = table["td3"]
+    assert int(td3["runs"]) == 2 and int(td3["td3_frames"]) == 800
+    assert float(td3["mean"]) == pytest.approx(statistics.mean(finals))
+    assert float(td3["std"]) == pytest.approx(statistics.stdev(finals))
+    assert float(td3["median"]) == pytest.approx(statistics.median(finals))
+    assert float(td3["iqm"]) == pytest.approx(statistics.mean(finals))  # 2 values: nothing trimmed
+    assert min(finals) - 1e-6 <= float(td3["iqm_ci_low"]) <= float(td3["iqm_ci_high"]) <= max(finals) + 1e-6
+    assert int(table["es_td3_buffers"]["runs"]) == 2 and table["cem_rl"]["iqm_ci_low"] == "nan"  # one seed: no CI
+    markdown = (tmp_path / "results.md").read_text()
+    assert "| HalfCheetah-v5 | TD3 | 2 |" in markdown and "ES-TD3Buffers" in markdown
+    for name in ("curves_HalfCheetah-v5.png", "es_vs_td3_HalfCheetah-v5.png", "ratio_sweep_HalfCheetah-v5.png"):
+        png = (tmp_path / name).read_bytes()
+        assert png[:8] == b"\x89PNG\r\n\x1a\n" and len(png) > 10_000, name
+
+
+def test_tensorboard_backend_writes_event_files(tmp_path):
+    pytest.importorskip("tensorboard")
+    run("es.py", "iterations=1", "es.generations_per_iteration=1", "logger.backend=tensorboard", f"hydra.run.dir={tmp_path}")
+    assert list((tmp_path / "logs").rglob("events.out.tfevents.*"))
+    assert (tmp_path / "metrics.csv").exists()

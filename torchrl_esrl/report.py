@@ -1,0 +1,253 @@
+"""The report over run directories (``recipes/report.py``): Table 1 of the paper, learning curves,
+ES-vs-TD3 curves with overwrite events, and a ratio sweep.
+
+A *run* is a directory holding ``summary.json`` and ``metrics.csv`` as written by
+:class:`torchrl_esrl.harness.RunHarness`; any directory above runs (a Hydra multirun, a folder of
+runs) is searched recursively.
+
+- Table: per env x algorithm, the final return of the returned policy (``final_return``) over
+  seeds: mean, std (ddof=1), median (the paper's Table 1) and the interquartile mean with a 95%
+  percentile-bootstrap confidence interval over seeds (Agarwal et al. 2021; ``scipy.stats``).
+- Learning curves: ``eval_return`` against TD3 frames, mean over seeds, min-max band shaded.
+  OpenAI-ES has no TD3 frames; its checkpoints are drawn at the TD3 frames ES-TD3Buffers has
+  at the same iteration (``(iteration + 1) x frames_per_iteration``).
+"""
+from __future__ import annotations
+
+import csv
+import json
+import math
+from collections import defaultdict
+from pathlib import Path
+
+import numpy as np
+from scipy import stats
+
+from torchrl_esrl.metrics import read_metrics
+
+TABLE_COLUMNS = ("env", "algorithm", "runs", "td3_frames", "es_frames", "mean", "std", "median", "iqm", "iqm_ci_low", "iqm_ci_high")
+ALGORITHM_LABELS = {
+    "es_td3_buffers": "ES-TD3Buffers",
+    "es_td3_shared": "ES-TD3 (one shared buffer)",
+    "td3": "TD3",
+    "es": "OpenAI-ES",
+    "cem_rl": "CEM-RL",
+}
+
+
+def find_runs(paths) -> list[dict]:
+    """Every run under ``paths``: its summary, its metrics rows and its directory."""
+    runs = []
+    for root in map(Path, paths):
+        for summary_path in sorted(root.rglob("summary.json")):
+            metrics_path = summary_path.with_name("metrics.csv")
+            if not metrics_path.exists():
+                continue
+            summary = json.loads(summary_path.read_text())
+            summary.setdefault("algorithm", "es_td3_buffers")  # runs written before the harness existed
+            summary.setdefault("final_return", summary.get("final_es_mean_return"))
+            runs.append({"summary": summary, "metrics": read_metrics(metrics_path), "dir": summary_path.parent})
+    return runs
+
+
+def interquartile_mean(values) -> float:
+    """Mean of the middle 50% (scipy's ``trim_mean`` with 25% cut on each side, as rliable)."""
+    return float(stats.trim_mean(np.asarray(values, dtype=float), 0.25))
+
+
+def iqm_confidence_interval(values, confidence: float = 0.95, resamples: int = 2000, seed: int = 0) -> tuple[float, float]:
+    """Percentile-bootstrap CI of the IQM over seeds (NaN with fewer than 2 distinct values)."""
+    values = np.asarray(values, dtype=float)
+    if values.size < 2 or np.unique(values).size < 2:
+        return math.nan, math.nan
+    result = stats.bootstrap(
+        (values,),
+        lambda x, axis: stats.trim_mean(x, 0.25, axis=axis),
+        confidence_level=confidence,
+        n_resamples=resamples,
+        method="percentile",
+        rng=np.random.default_rng(seed),
+    )
+    return float(result.confidence_interval.low), float(result.confidence_interval.high)
+
+
+def results_table(runs: list[dict]) -> list[dict]:
+    """One row per (env, algorithm): statistics of ``final_return`` over its runs."""
+    groups: dict[tuple[str, str], list[dict]] = defaultdict(list)
+    for run in runs:
+        groups[(run["summary"]["env"], run["summary"]["algorithm"])].append(run["summary"])
+    rows = []
+    for (env, algorithm), summaries in sorted(groups.items()):
+        finals = np.array([s["final_return"] for s in summaries], dtype=float)
+        low, high = iqm_confidence_interval(finals)
+        rows.append(
+            {
+                "env": env,
+                "algorithm": algorithm,
+                "runs": len(finals),
+                "td3_frames": int(np.mean([s.get("td3_frames", 0) for s in summaries])),
+                "es_frames": int(np.mean([s.get("es_frames", 0) for s in summaries])),
+                "mean": float(finals.mean()),
+                "std": float(finals.std(ddof=1)) if len(finals) > 1 else 0.0,
+                "median": float(np.median(finals)),
+                "iqm": interquartile_mean(finals),
+                "iqm_ci_low": low,
+                "iqm_ci_high": high,
+            }
+        )
+    return rows
+
+
+def write_table(rows: list[dict], out_dir: Path) -> tuple[Path, Path]:
+    """``results.csv`` and ``results.md`` (Table 1 layout: env x algorithm, mean / std / median)."""
+    csv_path, md_path = out_dir / "results.csv", out_dir / "results.md"
+    with csv_path.open("w", newline="") as handle:
+        writer = csv.DictWriter(handle, fieldnames=TABLE_COLUMNS)
+        writer.writeheader()
+        writer.writerows(rows)
+    lines = [
+        "| env | algorithm | runs | TD3 frames | ES frames | mean | std | median | IQM [95% CI] |",
+        "|---|---|---:|---:|---:|---:|---:|---:|---|",
+    ]
+    for r in rows:
+        ci = "n/a" if math.isnan(r["iqm_ci_low"]) else f"[{r['iqm_ci_low']:.1f}, {r['iqm_ci_high']:.1f}]"
+        label = ALGORITHM_LABELS.get(r["algorithm"], r["algorithm"])
+        lines.append(f"| {r['env']} | {label} | {r['runs']} | {r['td3_frames']} | {r['es_frames']} | {r['mean']:.1f} | {r['std']:.1f} | {r['median']:.1f} | {r['iqm']:.1f} {ci} |")
+    md_path.write_text("\n".join(lines) + "\n")
+    return csv_path, md_path
+
+
+def _curve_x(run: dict) -> np.ndarray:
+    frames = np.array([row["td3_frames"] for row in run["metrics"]], dtype=float)
+    if frames.any():
+        return frames
+    per_iteration = run["summary"].get("frames_per_iteration", 1)
+    return np.array([(row["iteration"] + 1) * per_iteration for row in run["metrics"]], dtype=float)
+
+
+def plot_learning_curves(runs: list[dict], out_dir: Path) -> list[Path]:
+    """One PNG per env: eval return vs TD3 frames, one line per algorithm, seeds' min-max shaded."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    paths = []
+    by_env: dict[str, dict[str, list[dict]]] = defaultdict(lambda: defaultdict(list))
+    for run in runs:
+        by_env[run["summary"]["env"]][run["summary"]["algorithm"]].append(run)
+    for env, by_algorithm in sorted(by_env.items()):
+        fig, ax = plt.subplots(figsize=(7, 4.5))
+        for algorithm, group in sorted(by_algorithm.items()):
+            length = min(len(run["metrics"]) for run in group)
+            x = _curve_x(group[0])[:length]
+            returns = np.array([[row["eval_return"] for row in run["metrics"][:length]] for run in group], dtype=float)
+            label = f"{ALGORITHM_LABELS.get(algorithm, algorithm)} ({len(group)} seeds)"
+            (line,) = ax.plot(x, returns.mean(axis=0), marker="o", markersize=3, label=label)
+            if len(group) > 1:
+                ax.fill_between(x, returns.min(axis=0), returns.max(axis=0), color=line.get_color(), alpha=0.2)
+        ax.set_xlabel("TD3 frames (OpenAI-ES: at the same iteration checkpoints)")
+        ax.set_ylabel("evaluation return (deterministic)")
+        ax.set_title(f"{env}: returned policy, mean over seeds (band: min-max)")
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=8, loc="best")
+        fig.tight_layout()
+        path = out_dir / f"curves_{env}.png"
+        fig.savefig(path, dpi=120)
+        plt.close(fig)
+        paths.append(path)
+    return paths
+
+
+def plot_es_vs_td3(runs: list[dict], out_dir: Path) -> list[Path]:
+    """Per env, ES-TD3Buffers' TD3 actor vs ES mean per iteration, one panel per run; overwrites marked."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.ticker import MaxNLocator
+
+    paths = []
+    by_env: dict[str, list[dict]] = defaultdict(list)
+    for run in runs:
+        if run["summary"]["algorithm"] == "es_td3_buffers" and run["metrics"] and "td3_eval_return" in run["metrics"][0]:
+            by_env[run["summary"]["env"]].append(run)
+    for env, group in sorted(by_env.items()):
+        group = sorted(group, key=lambda r: (str(r["summary"].get("ratio")), r["summary"]["seed"]))
+        fig, axes = plt.subplots(1, len(group), figsize=(4 * len(group), 3.6), squeeze=False, sharey=True)
+        for ax, run in zip(axes[0], group):
+            rows = run["metrics"]
+            iterations = [row["iteration"] for row in rows]
+            ax.plot(iterations, [row["td3_eval_return"] for row in rows], marker="o", markersize=3, label="TD3 actor")
+            ax.plot(iterations, [row["es_eval_return"] for row in rows], marker="s", markersize=3, label="ES mean")
+            overwritten = [row["iteration"] for row in rows if row.get("overwritten") is True]
+            for i, it in enumerate(overwritten):
+                ax.axvline(it, color="red", linestyle="--", alpha=0.6, label="ES mean overwritten" if i == 0 else None)
+            ratio = run["summary"].get("ratio")
+            ax.set_title(f"seed {run['summary']['seed']}, ratio {ratio}", fontsize=9)
+            ax.set_xlabel("iteration")
+            ax.xaxis.set_major_locator(MaxNLocator(integer=True))
+            ax.grid(alpha=0.3)
+        axes[0][0].set_ylabel("evaluation return")
+        handles, labels = [], []
+        for ax in axes[0]:
+            for h, lab in zip(*ax.get_legend_handles_labels()):
+                if lab not in labels:
+                    handles.append(h)
+                    labels.append(lab)
+        axes[0][0].legend(handles, labels, fontsize=8, loc="best")
+        fig.suptitle(f"{env}: ES-TD3Buffers, TD3 vs ES per iteration", fontsize=10)
+        fig.tight_layout()
+        path = out_dir / f"es_vs_td3_{env}.png"
+        fig.savefig(path, dpi=120)
+        plt.close(fig)
+        paths.append(path)
+    return paths
+
+
+def plot_ratio_sweep(runs: list[dict], out_dir: Path) -> list[Path]:
+    """Per env with ES-TD3Buffers runs at 2+ ratios: final return vs ratio (mean, std, seeds as dots)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    paths = []
+    by_env: dict[str, dict[tuple, list[float]]] = defaultdict(lambda: defaultdict(list))
+    for run in runs:
+        s = run["summary"]
+        if s["algorithm"] == "es_td3_buffers" and s.get("ratio") is not None:
+            by_env[s["env"]][tuple(round(float(r), 3) for r in s["ratio"])].append(float(s["final_return"]))
+    for env, by_ratio in sorted(by_env.items()):
+        if len(by_ratio) < 2:
+            continue
+        ratios = sorted(by_ratio)
+        fig, ax = plt.subplots(figsize=(max(5, 1.4 * len(ratios)), 4))
+        for i, ratio in enumerate(ratios):
+            values = np.array(by_ratio[ratio])
+            ax.errorbar(i, values.mean(), yerr=values.std(ddof=1) if len(values) > 1 else 0, fmt="o", capsize=4, color="C0")
+            ax.scatter(np.full(len(values), i + 0.08), values, s=12, color="C1", alpha=0.7)
+        ax.set_xticks(range(len(ratios)), [":".join(f"{r:g}" for r in ratio) for ratio in ratios], fontsize=8)
+        ax.set_xlabel("buffer ratio good:bad:noisy")
+        ax.set_ylabel("final return of the ES mean")
+        ax.set_title(f"{env}: ratio sweep (mean ± std; dots: seeds)", fontsize=10)
+        ax.grid(alpha=0.3)
+        fig.tight_layout()
+        path = out_dir / f"ratio_sweep_{env}.png"
+        fig.savefig(path, dpi=120)
+        plt.close(fig)
+        paths.append(path)
+    return paths
+
+
+def make_report(paths, out_dir) -> dict:
+    """Everything: the table (csv + md) and the PNGs; returns what was written."""
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    runs = find_runs(paths)
+    if not runs:
+        raise FileNotFoundError(f"no run (summary.json + metrics.csv) under {[str(p) for p in paths]}")
+    rows = results_table(runs)
+    csv_path, md_path = write_table(rows, out_dir)
+    figures = plot_learning_curves(runs, out_dir) + plot_es_vs_td3(runs, out_dir) + plot_ratio_sweep(runs, out_dir)
+    return {"runs": len(runs), "rows": rows, "table_csv": csv_path, "table_md": md_path, "figures": figures}
