@@ -12,14 +12,13 @@ Usage: ``python -m benchmarks.buffer_sampling [--quick] [--out PATH]``.
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 
 if __package__ in (None, ""):
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from benchmarks.common import SHAPES, fill, interleaved, machine  # noqa: E402  (sets OMP_WAIT_POLICY)
+from benchmarks.common import SHAPES, fill, interleaved, save_report  # noqa: E402  (sets OMP_WAIT_POLICY)
 
 import torch  # noqa: E402
 
@@ -63,12 +62,9 @@ def main(argv=None) -> dict:
     args = parser.parse_args(argv)
     capacity = args.capacity or (100_000 if args.quick else 1_000_000)
     report = run(capacity, repeats=args.repeats or (3 if args.quick else 7), calls=100 if args.quick else 300)
-    report["machine"] = machine()
     for name, t in report["methods"].items():
         print(f"{name:12s} {t['s_per_call'] * 1e6:8.1f} us  {t['ratio']:5.2f}x (best rounds {t['ratio_best']:5.2f}x)")
-    if args.out:
-        Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.out).write_text(json.dumps(report, indent=2))
+    save_report(report, args.out)
     return report
 
 

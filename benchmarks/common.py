@@ -74,3 +74,15 @@ def machine() -> dict:
         "cuda": torch.cuda.is_available(),
         "load_average": os.getloadavg(),
     }
+
+
+def save_report(report: dict, out: str | None) -> dict:
+    """Attach the machine description and write ``report`` as JSON to ``out`` (if given)."""
+    report["machine"] = machine()
+    if out:
+        from pathlib import Path
+        import json
+
+        Path(out).parent.mkdir(parents=True, exist_ok=True)
+        Path(out).write_text(json.dumps(report, indent=2))
+    return report

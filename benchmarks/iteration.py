@@ -18,7 +18,6 @@ Usage: ``python -m benchmarks.iteration [--quick] [--env halfcheetah] [--out PAT
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
 from pathlib import Path
@@ -26,7 +25,7 @@ from pathlib import Path
 if __package__ in (None, ""):
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from benchmarks.common import fill, machine  # noqa: E402  (sets OMP_WAIT_POLICY)
+from benchmarks.common import fill, save_report  # noqa: E402  (sets OMP_WAIT_POLICY)
 
 import torch  # noqa: E402
 from omegaconf import OmegaConf  # noqa: E402
@@ -133,13 +132,10 @@ def main(argv=None) -> dict:
     parser.add_argument("--out", default="benchmarks/results/iteration.json")
     args = parser.parse_args(argv)
     report = run(args.env, args.frames or (500 if args.quick else 2000), args.generations or (1 if args.quick else 2))
-    report["machine"] = machine()
     for name, p in report["parts"].items():
         print(f"{name:18s} {p['s_per'] * 1e3:10.2f} ms/{p['per']:10s} x{p['count_per_iteration']:>7g} = {p['s_per_iteration']:8.1f} s/iteration ({p['share']:5.1%})")
     print(f"iteration {report['iteration_s']:.0f} s; {report['iterations']} iterations {report['run_h']:.2f} h (goal <= 4 h: {'met' if report['met'] else 'not met'})")
-    if args.out:
-        Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.out).write_text(json.dumps(report, indent=2))
+    save_report(report, args.out)
     return report
 
 

@@ -13,14 +13,13 @@ from __future__ import annotations
 
 import argparse
 import gc
-import json
 import sys
 from pathlib import Path
 
 if __package__ in (None, ""):
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from benchmarks.common import SHAPES, fill, machine, transitions  # noqa: E402
+from benchmarks.common import SHAPES, fill, save_report, transitions  # noqa: E402  (sets OMP_WAIT_POLICY)
 
 import torch  # noqa: E402
 
@@ -83,14 +82,11 @@ def main(argv=None) -> dict:
     parser.add_argument("--out", default="benchmarks/results/memory.json")
     args = parser.parse_args(argv)
     report = run(args.capacity or (100_000 if args.quick else 1_000_000))
-    report["machine"] = machine()
     print(f"Ant-v5: {report['bytes_per_transition']} B/transition; 3 x {report['capacity']:,} buffers: computed "
           f"{report['computed_buffers_bytes'] / GIB:.3f} GiB, measured RSS growth {report['measured_buffers_bytes'] / GIB:.3f} GiB "
           f"({report['measured_over_computed']:.3f}x); generation in flight {report['generation_in_flight_bytes'] / GIB:.3f} GiB; "
           f"peak RSS {report['peak_rss_bytes'] / GIB:.2f} GiB; paper run projected {report['paper_projected_peak_gib']:.2f} GiB (< 24 GiB: {report['met']})")
-    if args.out:
-        Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.out).write_text(json.dumps(report, indent=2))
+    save_report(report, args.out)
     return report
 
 

@@ -18,14 +18,13 @@ from __future__ import annotations
 
 import argparse
 import copy
-import json
 import sys
 from pathlib import Path
 
 if __package__ in (None, ""):
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from benchmarks.common import SHAPES, fill, interleaved, machine  # noqa: E402  (sets OMP_WAIT_POLICY)
+from benchmarks.common import SHAPES, fill, interleaved, save_report  # noqa: E402  (sets OMP_WAIT_POLICY)
 
 import torch  # noqa: E402
 import torch.nn.functional as F  # noqa: E402
@@ -121,12 +120,9 @@ def main(argv=None) -> dict:
     parser.add_argument("--out", default="benchmarks/results/td3_update.json")
     args = parser.parse_args(argv)
     report = run(100_000 if args.quick else 1_000_000, repeats=args.repeats or (3 if args.quick else 9), calls=args.calls or (20 if args.quick else 50))
-    report["machine"] = machine()
     for name, t in report["methods"].items():
         print(f"{name:22s} {t['updates_per_s']:8.1f} updates/s  {t['ratio']:5.2f}x plain (best rounds {t['ratio_best']:5.2f}x)")
-    if args.out:
-        Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.out).write_text(json.dumps(report, indent=2))
+    save_report(report, args.out)
     return report
 
 
