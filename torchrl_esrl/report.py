@@ -125,12 +125,26 @@ def _curve_x(run: dict) -> np.ndarray:
     return np.array([(row["iteration"] + 1) * per_iteration for row in run["metrics"]], dtype=float)
 
 
-def plot_learning_curves(runs: list[dict], out_dir: Path) -> list[Path]:
-    """One PNG per env: eval return vs TD3 frames, one line per algorithm, seeds' min-max shaded."""
+
+def _pyplot():
+    """matplotlib's pyplot on the file-only Agg backend (reports run headless)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+
+    return plt
+
+
+def _save(fig, path: Path) -> Path:
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    _pyplot().close(fig)
+    return path
+
+def plot_learning_curves(runs: list[dict], out_dir: Path) -> list[Path]:
+    """One PNG per env: eval return vs TD3 frames, one line per algorithm, seeds' min-max shaded."""
+    plt = _pyplot()
 
     paths = []
     by_env: dict[str, dict[str, list[dict]]] = defaultdict(lambda: defaultdict(list))
@@ -151,20 +165,13 @@ def plot_learning_curves(runs: list[dict], out_dir: Path) -> list[Path]:
         ax.set_title(f"{env}: returned policy, mean over seeds (band: min-max)")
         ax.grid(alpha=0.3)
         ax.legend(fontsize=8, loc="best")
-        fig.tight_layout()
-        path = out_dir / f"curves_{env}.png"
-        fig.savefig(path, dpi=120)
-        plt.close(fig)
-        paths.append(path)
+        paths.append(_save(fig, out_dir / f"curves_{env}.png"))
     return paths
 
 
 def plot_es_vs_td3(runs: list[dict], out_dir: Path) -> list[Path]:
     """Per env, ES-TD3Buffers' TD3 actor vs ES mean per iteration, one panel per run; overwrites marked."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = _pyplot()
     from matplotlib.ticker import MaxNLocator
 
     paths = []
@@ -197,20 +204,13 @@ def plot_es_vs_td3(runs: list[dict], out_dir: Path) -> list[Path]:
                     labels.append(lab)
         axes[0][0].legend(handles, labels, fontsize=8, loc="best")
         fig.suptitle(f"{env}: ES-TD3Buffers, TD3 vs ES per iteration", fontsize=10)
-        fig.tight_layout()
-        path = out_dir / f"es_vs_td3_{env}.png"
-        fig.savefig(path, dpi=120)
-        plt.close(fig)
-        paths.append(path)
+        paths.append(_save(fig, out_dir / f"es_vs_td3_{env}.png"))
     return paths
 
 
 def plot_ratio_sweep(runs: list[dict], out_dir: Path) -> list[Path]:
     """Per env with ES-TD3Buffers runs at 2+ ratios: final return vs ratio (mean, std, seeds as dots)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = _pyplot()
 
     paths = []
     by_env: dict[str, dict[tuple, list[float]]] = defaultdict(lambda: defaultdict(list))
@@ -232,11 +232,7 @@ def plot_ratio_sweep(runs: list[dict], out_dir: Path) -> list[Path]:
         ax.set_ylabel("final return of the ES mean")
         ax.set_title(f"{env}: ratio sweep (mean ± std; dots: seeds)", fontsize=10)
         ax.grid(alpha=0.3)
-        fig.tight_layout()
-        path = out_dir / f"ratio_sweep_{env}.png"
-        fig.savefig(path, dpi=120)
-        plt.close(fig)
-        paths.append(path)
+        paths.append(_save(fig, out_dir / f"ratio_sweep_{env}.png"))
     return paths
 
 
