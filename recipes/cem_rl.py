@@ -23,8 +23,8 @@ from tqdm.auto import tqdm
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # run from a checkout without installing
 
 from torchrl_esrl.buffers import MultiBuffer  # noqa: E402
-from torchrl_esrl.cem import DiagonalCEM, td3_improve_member  # noqa: E402
-from torchrl_esrl.factories import make_actor_critic, make_es_collector, make_td3, make_train_env  # noqa: E402
+from torchrl_esrl.cem import td3_improve_member  # noqa: E402
+from torchrl_esrl.factories import make_actor_critic, make_cem, make_es_collector, make_td3, make_train_env  # noqa: E402
 from torchrl_esrl.harness import RunHarness, hydra_main  # noqa: E402
 from torchrl_esrl.networks import flat_parameters  # noqa: E402
 
@@ -35,18 +35,8 @@ def train(cfg: DictConfig, run_dir: Path) -> dict:
     actor, critic = make_actor_critic(cfg, env)
     td3 = make_td3(cfg, actor, critic, env.action_spec)
     buffer = MultiBuffer(ratio=(0, 0, 1), capacity=cfg.buffer.capacity, batch_size=cfg.buffer.batch_size, min_size=cfg.buffer.min_size, device=cfg.device)
-    c = cfg.cem
-    cem = DiagonalCEM(
-        flat_parameters(actor),
-        population_size=c.population_size,
-        sigma_init=c.sigma_init,
-        elite_fraction=c.elite_fraction,
-        damping_init=c.damping_init,
-        damping_end=c.damping_end,
-        damping_tau=c.damping_tau,
-        generator=torch.Generator().manual_seed(int(cfg.seed) + 1),
-    )
-    rl_members = int(c.population_size * c.rl_fraction)
+    cem = make_cem(cfg, actor)
+    rl_members = int(cfg.cem.population_size * cfg.cem.rl_fraction)
     population_collector = make_es_collector(cfg, actor)  # one deterministic episode per member
     harness.attach_actor(actor)
 
@@ -81,7 +71,7 @@ def train(cfg: DictConfig, run_dir: Path) -> dict:
             critic_loss=sum(critic_losses) / len(critic_losses) if critic_losses else "",
             cem_mean_std=cem.var.sqrt().mean().item(),
         )
-    return harness.finish(cem.mean, {"generations": cem.generation, "td3_updates": td3.updates, "population_size": int(c.population_size)})
+    return harness.finish(cem.mean, {"generations": cem.generation, "td3_updates": td3.updates, "population_size": int(cfg.cem.population_size)})
 
 
 main = hydra_main(train, config_name="cem_rl")

@@ -7,23 +7,14 @@ import pytest
 import torch
 from torchrl.data import Bounded
 
+from torchrl_esrl.buffers import TRANSITION_KEYS
 from torchrl_esrl.es_collector import BACKENDS, ESCollector, GymBackend, default_backend
 from torchrl_esrl.mujoco_batch import MujocoBatchBackend
 from torchrl_esrl.networks import PopulationActor, flat_parameters, make_actor
 
 ENV_IDS = ["HalfCheetah-v5", "Walker2d-v5", "Ant-v5", "Swimmer-v5", "Hopper-v5"]
 TERMINATING = {"Walker2d-v5", "Ant-v5", "Hopper-v5"}
-KEYS = [
-    "observation",
-    "action",
-    ("next", "observation"),
-    ("next", "reward"),
-    ("next", "done"),
-    ("next", "terminated"),
-    ("next", "truncated"),
-    "episode_return",
-    ("collector", "traj_ids"),
-]
+KEYS = [*TRANSITION_KEYS, "episode_return", ("collector", "traj_ids")]
 
 
 def population(env_id: str, members: int, sigma: float, seed: int = 0):

@@ -94,6 +94,23 @@ def make_es(cfg: DictConfig, actor) -> OpenES:
     )
 
 
+def make_cem(cfg: DictConfig, actor):
+    """CEM-RL's diagonal CEM (baseline, ``conf/cem_rl.yaml``) centred on the actor's parameters."""
+    from torchrl_esrl.cem import DiagonalCEM
+
+    c = cfg.cem
+    return DiagonalCEM(
+        flat_parameters(actor),
+        population_size=c.population_size,
+        sigma_init=c.sigma_init,
+        elite_fraction=c.elite_fraction,
+        damping_init=c.damping_init,
+        damping_end=c.damping_end,
+        damping_tau=c.damping_tau,
+        generator=torch.Generator().manual_seed(int(cfg.seed) + 1),
+    )
+
+
 def make_es_collector(cfg: DictConfig, actor) -> ESCollector:
     backend_kwargs = {}
     if cfg.es.backend == "ray":  # offspring evaluated on a Ray cluster, see the `ray` config section
