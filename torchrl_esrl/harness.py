@@ -13,6 +13,7 @@ Evaluation frames are counted in neither ``td3_frames`` nor ``es_frames``.
 """
 from __future__ import annotations
 
+import functools
 import time
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
@@ -27,6 +28,7 @@ from torchrl_esrl.envs import quiet_logs
 from torchrl_esrl.es_collector import ESCollector
 from torchrl_esrl.factories import seed_everything
 from torchrl_esrl.metrics import CORE_COLUMNS, MetricsLog, write_json
+from torchrl_esrl.schema import run_cli
 
 
 class RunHarness:
@@ -117,7 +119,9 @@ CONF_DIR = Path(__file__).resolve().parents[1] / "conf"
 
 def hydra_main(train: Callable[[DictConfig, Path], dict], config_name: str) -> Callable[[], None]:
     """The ``main`` of a baseline recipe: Hydra config ``conf/<config_name>.yaml``, fail-fast
-    validation, then ``train(cfg, run_dir)`` in the Hydra run directory."""
+    validation, then ``train(cfg, run_dir)`` in the Hydra run directory. Called through
+    :func:`~torchrl_esrl.schema.run_cli`, as ``recipes/es_td3.py`` is: Hydra's own config errors
+    (unknown keys, wrong types) are one line too, and a numerical fault stops with one line."""
 
     @hydra.main(version_base="1.3", config_path=str(CONF_DIR), config_name=config_name)
     def main(cfg: DictConfig) -> None:
@@ -128,7 +132,10 @@ def hydra_main(train: Callable[[DictConfig, Path], dict], config_name: str) -> C
         run_dir = Path(HydraConfig.get().runtime.output_dir)
         if cfg.logger.progress:
             print(OmegaConf.to_yaml(cfg, resolve=True))
-        summary = train(cfg, run_dir)
+        try:
+            summary = train(cfg, run_dir)
+        except FloatingPointError as fault:
+            raise SystemExit(f"numerical fault: {fault}; run stopped") from None
         print(f"{summary['algorithm']}: final return {summary['final_return']:.1f} -> {run_dir}")
 
-    return main
+    return functools.partial(run_cli, main)
