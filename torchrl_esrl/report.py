@@ -33,6 +33,10 @@ ALGORITHM_LABELS = {
     "es": "OpenAI-ES",
     "cem_rl": "CEM-RL",
 }
+# ES-TD3 returns its ES mean, but the buffers act on its TD3 actor: the table and the curves also
+# show that actor (``final_td3_actor_return`` / ``td3_eval_return``) as a row of its own.
+TD3_ACTOR_SUFFIX = "/td3_actor"
+ALGORITHM_LABELS.update({f"{name}{TD3_ACTOR_SUFFIX}": f"{label}: its TD3 actor" for name, label in list(ALGORITHM_LABELS.items()) if name.startswith("es_td3")})
 
 
 def find_runs(paths) -> list[dict]:
@@ -72,10 +76,15 @@ def iqm_confidence_interval(values, confidence: float = 0.95, resamples: int = 2
 
 
 def results_table(runs: list[dict]) -> list[dict]:
-    """One row per (env, algorithm): statistics of ``final_return`` over its runs."""
+    """One row per (env, algorithm): statistics of ``final_return`` over its runs; for ES-TD3 runs a
+    second row ``<algorithm>/td3_actor`` with the final return of their TD3 actor."""
     groups: dict[tuple[str, str], list[dict]] = defaultdict(list)
     for run in runs:
-        groups[(run["summary"]["env"], run["summary"]["algorithm"])].append(run["summary"])
+        summary = run["summary"]
+        groups[(summary["env"], summary["algorithm"])].append(summary)
+        if "final_td3_actor_return" in summary:
+            actor = {**summary, "final_return": summary["final_td3_actor_return"]}
+            groups[(summary["env"], summary["algorithm"] + TD3_ACTOR_SUFFIX)].append(actor)
     rows = []
     for (env, algorithm), summaries in sorted(groups.items()):
         finals = np.array([s["final_return"] for s in summaries], dtype=float)
@@ -143,7 +152,8 @@ def _save(fig, path: Path) -> Path:
     return path
 
 def plot_learning_curves(runs: list[dict], out_dir: Path) -> list[Path]:
-    """One PNG per env: eval return vs TD3 frames, one line per algorithm, seeds' min-max shaded."""
+    """One PNG per env: eval return vs TD3 frames, one line per algorithm, seeds' min-max shaded;
+    ES-TD3 variants also draw their TD3 actor's mean as a dashed line."""
     plt = _pyplot()
 
     paths = []
@@ -160,6 +170,10 @@ def plot_learning_curves(runs: list[dict], out_dir: Path) -> list[Path]:
             (line,) = ax.plot(x, returns.mean(axis=0), marker="o", markersize=3, label=label)
             if len(group) > 1:
                 ax.fill_between(x, returns.min(axis=0), returns.max(axis=0), color=line.get_color(), alpha=0.2)
+            if all("td3_eval_return" in run["metrics"][0] for run in group):  # ES-TD3: its TD3 actor, dashed
+                actor = np.array([[row["td3_eval_return"] for row in run["metrics"][:length]] for run in group], dtype=float)
+                actor_label = ALGORITHM_LABELS.get(algorithm + TD3_ACTOR_SUFFIX, algorithm)
+                ax.plot(x, actor.mean(axis=0), linestyle="--", color=line.get_color(), alpha=0.8, label=actor_label)
         ax.set_xlabel("TD3 frames (OpenAI-ES: at the same iteration checkpoints)")
         ax.set_ylabel("evaluation return (deterministic)")
         ax.set_title(f"{env}: returned policy, mean over seeds (band: min-max)")
