@@ -112,21 +112,26 @@ def test_report_table_matches_the_runs_and_writes_figures(runs, tmp_path):
     result = subprocess.run([sys.executable, str(ROOT / "recipes" / "report.py"), str(runs), "--out", str(tmp_path)], cwd=ROOT, capture_output=True, text=True, timeout=300)
     assert result.returncode == 0, result.stderr[-3000:]
     with (tmp_path / "results.csv").open() as handle:
-        table = {row["algorithm"]: row for row in csv.DictReader(handle)}
-    assert set(table) == {"td3", "es", "cem_rl", "es_td3_shared", "es_td3_buffers", "es_td3_shared/td3_actor", "es_td3_buffers/td3_actor"}
+        table = {(row["algorithm"], row["ratio"]): row for row in csv.DictReader(handle)}
+    buffers = [(algorithm, ratio) for algorithm in ("es_td3_buffers", "es_td3_buffers/td3_actor") for ratio in ("0.2:0.2:0.6", "0.5:0.2:0.3")]
+    others = [(algorithm, "") for algorithm in ("td3", "es", "cem_rl", "es_td3_shared", "es_td3_shared/td3_actor")]
+    assert set(table) == set(buffers + others)  # runs at different ratios are never pooled
     finals = [load(runs / d)[1]["final_return"] for d in ("td3_0", "td3_1")]
-    td3 = table["td3"]
+    td3 = table[("td3", "")]
     assert int(td3["runs"]) == 2 and int(td3["td3_frames"]) == 800
     assert float(td3["mean"]) == pytest.approx(statistics.mean(finals))
     assert float(td3["std"]) == pytest.approx(statistics.stdev(finals))
     assert float(td3["median"]) == pytest.approx(statistics.median(finals))
     assert float(td3["iqm"]) == pytest.approx(statistics.mean(finals))  # 2 values: nothing trimmed
     assert min(finals) - 1e-6 <= float(td3["iqm_ci_low"]) <= float(td3["iqm_ci_high"]) <= max(finals) + 1e-6
-    assert int(table["es_td3_buffers"]["runs"]) == 2 and table["cem_rl"]["iqm_ci_low"] == "nan"  # one seed: no CI
-    actors = [load(d)[1]["final_td3_actor_return"] for d in sorted((runs / "sweep").glob("*/"))]
-    assert float(table["es_td3_buffers/td3_actor"]["mean"]) == pytest.approx(statistics.mean(actors))
+    assert all(int(table[key]["runs"]) == 1 for key in buffers) and table[("cem_rl", "")]["iqm_ci_low"] == "nan"  # one seed: no CI
+    for run_dir in (runs / "sweep").glob("*/"):
+        summary = load(run_dir)[1]
+        ratio = ":".join(f"{r:g}" for r in summary["ratio"])
+        assert float(table[("es_td3_buffers", ratio)]["mean"]) == pytest.approx(summary["final_return"])
+        assert float(table[("es_td3_buffers/td3_actor", ratio)]["mean"]) == pytest.approx(summary["final_td3_actor_return"])
     markdown = (tmp_path / "results.md").read_text()
-    assert "| HalfCheetah-v5 | TD3 | 2 |" in markdown and "| HalfCheetah-v5 | ES-TD3Buffers: its TD3 actor | 2 |" in markdown
+    assert "| HalfCheetah-v5 | TD3 | 2 |" in markdown and "| HalfCheetah-v5 | ES-TD3Buffers 0.5:0.2:0.3: its TD3 actor | 1 |" in markdown
     for name in ("curves_HalfCheetah-v5.png", "es_vs_td3_HalfCheetah-v5.png", "ratio_sweep_HalfCheetah-v5.png"):
         png = (tmp_path / name).read_bytes()
         assert png[:8] == b"\x89PNG\r\n\x1a\n" and len(png) > 10_000, name

@@ -25,7 +25,7 @@ from scipy import stats
 
 from torchrl_esrl.metrics import read_metrics
 
-TABLE_COLUMNS = ("env", "algorithm", "runs", "td3_frames", "es_frames", "mean", "std", "median", "iqm", "iqm_ci_low", "iqm_ci_high")
+TABLE_COLUMNS = ("env", "algorithm", "ratio", "runs", "td3_frames", "es_frames", "mean", "std", "median", "iqm", "iqm_ci_low", "iqm_ci_high")
 ALGORITHM_LABELS = {
     "es_td3_buffers": "ES-TD3Buffers",
     "es_td3_shared": "ES-TD3 (one shared buffer)",
@@ -36,17 +36,38 @@ ALGORITHM_LABELS = {
 # ES-TD3 returns its ES mean, but the buffers act on its TD3 actor: the table and the curves also
 # show that actor (``final_td3_actor_return`` / ``td3_eval_return``) as a row of its own.
 TD3_ACTOR_SUFFIX = "/td3_actor"
-ALGORITHM_LABELS.update({f"{name}{TD3_ACTOR_SUFFIX}": f"{label}: its TD3 actor" for name, label in list(ALGORITHM_LABELS.items()) if name.startswith("es_td3")})
+PAPER_RATIO = "0.5:0.2:0.3"  # the curves show ES-TD3Buffers at this ratio when runs tie
+
+
+def _seeds(count: int) -> str:
+    return f"{count} seed" + ("s" if count != 1 else "")
+
+
+def ratio_text(summary: dict) -> str:
+    """``"0.5:0.2:0.3"`` for ES-TD3Buffers runs (runs at different ratios are different
+    configurations: never pooled), ``""`` for every other algorithm."""
+    if summary["algorithm"] != "es_td3_buffers" or summary.get("ratio") is None:
+        return ""
+    return ":".join(f"{float(r):g}" for r in summary["ratio"])
+
+
+def label(algorithm: str, ratio: str = "") -> str:
+    """Display name: ``ES-TD3Buffers 0.5:0.2:0.3: its TD3 actor`` for ``es_td3_buffers/td3_actor``."""
+    base, actor, _ = algorithm.partition(TD3_ACTOR_SUFFIX)
+    text = ALGORITHM_LABELS.get(base, base) + (f" {ratio}" if ratio else "")
+    return text + (": its TD3 actor" if actor else "")
 
 
 def find_runs(paths) -> list[dict]:
-    """Every run under ``paths``: its summary, its metrics rows and its directory."""
-    runs = []
+    """Every run under ``paths``: its summary, its metrics rows and its directory. A run reached
+    twice (overlapping paths, a symlink) counts once."""
+    runs, seen = [], set()
     for root in map(Path, paths):
         for summary_path in sorted(root.rglob("summary.json")):
             metrics_path = summary_path.with_name("metrics.csv")
-            if not metrics_path.exists():
+            if not metrics_path.exists() or summary_path.resolve() in seen:
                 continue
+            seen.add(summary_path.resolve())
             summary = json.loads(summary_path.read_text())
             summary.setdefault("algorithm", "es_td3_buffers")  # runs written before the harness existed
             summary.setdefault("final_return", summary.get("final_es_mean_return"))
@@ -76,23 +97,24 @@ def iqm_confidence_interval(values, confidence: float = 0.95, resamples: int = 2
 
 
 def results_table(runs: list[dict]) -> list[dict]:
-    """One row per (env, algorithm): statistics of ``final_return`` over its runs; for ES-TD3 runs a
-    second row ``<algorithm>/td3_actor`` with the final return of their TD3 actor."""
-    groups: dict[tuple[str, str], list[dict]] = defaultdict(list)
+    """One row per (env, algorithm, ratio): statistics of ``final_return`` over its runs; for ES-TD3
+    runs a second row ``<algorithm>/td3_actor`` with the final return of their TD3 actor."""
+    groups: dict[tuple[str, str, str], list[dict]] = defaultdict(list)
     for run in runs:
         summary = run["summary"]
-        groups[(summary["env"], summary["algorithm"])].append(summary)
+        groups[(summary["env"], summary["algorithm"], ratio_text(summary))].append(summary)
         if "final_td3_actor_return" in summary:
             actor = {**summary, "final_return": summary["final_td3_actor_return"]}
-            groups[(summary["env"], summary["algorithm"] + TD3_ACTOR_SUFFIX)].append(actor)
+            groups[(summary["env"], summary["algorithm"] + TD3_ACTOR_SUFFIX, ratio_text(summary))].append(actor)
     rows = []
-    for (env, algorithm), summaries in sorted(groups.items()):
+    for (env, algorithm, ratio), summaries in sorted(groups.items()):
         finals = np.array([s["final_return"] for s in summaries], dtype=float)
         low, high = iqm_confidence_interval(finals)
         rows.append(
             {
                 "env": env,
                 "algorithm": algorithm,
+                "ratio": ratio,
                 "runs": len(finals),
                 "td3_frames": int(np.mean([s.get("td3_frames", 0) for s in summaries])),
                 "es_frames": int(np.mean([s.get("es_frames", 0) for s in summaries])),
@@ -120,8 +142,7 @@ def write_table(rows: list[dict], out_dir: Path) -> tuple[Path, Path]:
     ]
     for r in rows:
         ci = "n/a" if math.isnan(r["iqm_ci_low"]) else f"[{r['iqm_ci_low']:.1f}, {r['iqm_ci_high']:.1f}]"
-        label = ALGORITHM_LABELS.get(r["algorithm"], r["algorithm"])
-        lines.append(f"| {r['env']} | {label} | {r['runs']} | {r['td3_frames']} | {r['es_frames']} | {r['mean']:.1f} | {r['std']:.1f} | {r['median']:.1f} | {r['iqm']:.1f} {ci} |")
+        lines.append(f"| {r['env']} | {label(r['algorithm'], r['ratio'])} | {r['runs']} | {r['td3_frames']} | {r['es_frames']} | {r['mean']:.1f} | {r['std']:.1f} | {r['median']:.1f} | {r['iqm']:.1f} {ci} |")
     md_path.write_text("\n".join(lines) + "\n")
     return csv_path, md_path
 
@@ -153,27 +174,30 @@ def _save(fig, path: Path) -> Path:
 
 def plot_learning_curves(runs: list[dict], out_dir: Path) -> list[Path]:
     """One PNG per env: eval return vs TD3 frames, one line per algorithm, seeds' min-max shaded;
-    ES-TD3 variants also draw their TD3 actor's mean as a dashed line."""
+    ES-TD3 variants also draw their TD3 actor's mean as a dashed line. Of ES-TD3Buffers, only the
+    ratio with the most runs is drawn (a ratio sweep has its own figure, ``plot_ratio_sweep``)."""
     plt = _pyplot()
 
     paths = []
-    by_env: dict[str, dict[str, list[dict]]] = defaultdict(lambda: defaultdict(list))
+    by_env: dict[str, dict[tuple[str, str], list[dict]]] = defaultdict(lambda: defaultdict(list))
     for run in runs:
-        by_env[run["summary"]["env"]][run["summary"]["algorithm"]].append(run)
-    for env, by_algorithm in sorted(by_env.items()):
+        by_env[run["summary"]["env"]][(run["summary"]["algorithm"], ratio_text(run["summary"]))].append(run)
+    for env, by_config in sorted(by_env.items()):
+        ratios = [(len(group), ratio == PAPER_RATIO, ratio) for (algorithm, ratio), group in by_config.items() if ratio]
+        main_ratio = max(ratios)[-1] if ratios else ""
         fig, ax = plt.subplots(figsize=(7, 4.5))
-        for algorithm, group in sorted(by_algorithm.items()):
+        for (algorithm, ratio), group in sorted(by_config.items()):
+            if ratio != main_ratio and ratio:
+                continue
             length = min(len(run["metrics"]) for run in group)
             x = _curve_x(group[0])[:length]
             returns = np.array([[row["eval_return"] for row in run["metrics"][:length]] for run in group], dtype=float)
-            label = f"{ALGORITHM_LABELS.get(algorithm, algorithm)} ({len(group)} seeds)"
-            (line,) = ax.plot(x, returns.mean(axis=0), marker="o", markersize=3, label=label)
+            (line,) = ax.plot(x, returns.mean(axis=0), marker="o", markersize=3, label=f"{label(algorithm, ratio)} ({_seeds(len(group))})")
             if len(group) > 1:
                 ax.fill_between(x, returns.min(axis=0), returns.max(axis=0), color=line.get_color(), alpha=0.2)
             if all("td3_eval_return" in run["metrics"][0] for run in group):  # ES-TD3: its TD3 actor, dashed
                 actor = np.array([[row["td3_eval_return"] for row in run["metrics"][:length]] for run in group], dtype=float)
-                actor_label = ALGORITHM_LABELS.get(algorithm + TD3_ACTOR_SUFFIX, algorithm)
-                ax.plot(x, actor.mean(axis=0), linestyle="--", color=line.get_color(), alpha=0.8, label=actor_label)
+                ax.plot(x, actor.mean(axis=0), linestyle="--", color=line.get_color(), alpha=0.8, label=label(algorithm + TD3_ACTOR_SUFFIX, ratio))
         ax.set_xlabel("TD3 frames (OpenAI-ES: at the same iteration checkpoints)")
         ax.set_ylabel("evaluation return (deterministic)")
         ax.set_title(f"{env}: returned policy, mean over seeds (band: min-max)")
@@ -223,29 +247,35 @@ def plot_es_vs_td3(runs: list[dict], out_dir: Path) -> list[Path]:
 
 
 def plot_ratio_sweep(runs: list[dict], out_dir: Path) -> list[Path]:
-    """Per env with ES-TD3Buffers runs at 2+ ratios: final return vs ratio (mean, std, seeds as dots)."""
+    """Per env with ES-TD3Buffers runs at 2+ ratios: final return vs ratio, of the returned ES mean
+    and of the TD3 actor (the policy the ratio acts on directly): mean ± std, seeds as dots."""
     plt = _pyplot()
 
     paths = []
-    by_env: dict[str, dict[tuple, list[float]]] = defaultdict(lambda: defaultdict(list))
+    by_env: dict[str, dict[str, list[dict]]] = defaultdict(lambda: defaultdict(list))
     for run in runs:
-        s = run["summary"]
-        if s["algorithm"] == "es_td3_buffers" and s.get("ratio") is not None:
-            by_env[s["env"]][tuple(round(float(r), 3) for r in s["ratio"])].append(float(s["final_return"]))
+        if ratio_text(run["summary"]):
+            by_env[run["summary"]["env"]][ratio_text(run["summary"])].append(run["summary"])
+    series = (("final_return", "ES mean (returned)", "o", -0.12), ("final_td3_actor_return", "TD3 actor", "s", 0.12))
     for env, by_ratio in sorted(by_env.items()):
         if len(by_ratio) < 2:
             continue
         ratios = sorted(by_ratio)
-        fig, ax = plt.subplots(figsize=(max(5, 1.4 * len(ratios)), 4))
-        for i, ratio in enumerate(ratios):
-            values = np.array(by_ratio[ratio])
-            ax.errorbar(i, values.mean(), yerr=values.std(ddof=1) if len(values) > 1 else 0, fmt="o", capsize=4, color="C0")
-            ax.scatter(np.full(len(values), i + 0.08), values, s=12, color="C1", alpha=0.7)
-        ax.set_xticks(range(len(ratios)), [":".join(f"{r:g}" for r in ratio) for ratio in ratios], fontsize=8)
+        fig, ax = plt.subplots(figsize=(max(5.5, 1.6 * len(ratios)), 4))
+        for color, (key, name, marker, shift) in enumerate(series):
+            for i, ratio in enumerate(ratios):
+                values = np.array([s[key] for s in by_ratio[ratio] if key in s], dtype=float)
+                if not len(values):
+                    continue
+                std = values.std(ddof=1) if len(values) > 1 else 0.0
+                ax.errorbar(i + shift, values.mean(), yerr=std, fmt=marker, capsize=4, color=f"C{color}", label=name if i == 0 else None)
+                ax.scatter(np.full(len(values), i + shift + 0.05), values, s=10, color=f"C{color}", alpha=0.5)
+        ax.set_xticks(range(len(ratios)), [f"{r}\n({_seeds(len(by_ratio[r]))})" for r in ratios], fontsize=8)
         ax.set_xlabel("buffer ratio good:bad:noisy")
-        ax.set_ylabel("final return of the ES mean")
+        ax.set_ylabel("final evaluation return")
         ax.set_title(f"{env}: ratio sweep (mean ± std; dots: seeds)", fontsize=10)
         ax.grid(alpha=0.3)
+        ax.legend(fontsize=8, loc="best")
         paths.append(_save(fig, out_dir / f"ratio_sweep_{env}.png"))
     return paths
 
