@@ -3,7 +3,8 @@
     python recipes/report.py outputs/ multirun/2026-11-22 --out report/
 
 Writes results.csv and results.md (Table 1: mean, std, median per env x algorithm, plus the IQM
-with a 95% bootstrap CI), curves_<env>.png, es_vs_td3_<env>.png and ratio_sweep_<env>.png.
+with a 95% bootstrap CI), runs.csv and runs.md (one row per run), curves_<env>.png,
+es_vs_td3_<env>.png and ratio_sweep_<env>.png.
 """
 from __future__ import annotations
 

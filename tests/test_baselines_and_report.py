@@ -130,6 +130,9 @@ def test_report_table_matches_the_runs_and_writes_figures(runs, tmp_path):
         ratio = ":".join(f"{r:g}" for r in summary["ratio"])
         assert float(table[("es_td3_buffers", ratio)]["mean"]) == pytest.approx(summary["final_return"])
         assert float(table[("es_td3_buffers/td3_actor", ratio)]["mean"]) == pytest.approx(summary["final_td3_actor_return"])
+    with (tmp_path / "runs.csv").open() as handle:  # one row per run, the numbers behind the table
+        per_run = list(csv.DictReader(handle))
+    assert len(per_run) == 8 and sorted(float(r["final_return"]) for r in per_run if r["algorithm"] == "td3") == sorted(finals)
     markdown = (tmp_path / "results.md").read_text()
     assert "| HalfCheetah-v5 | TD3 | 2 |" in markdown and "| HalfCheetah-v5 | ES-TD3Buffers 0.5:0.2:0.3: its TD3 actor | 1 |" in markdown
     for name in ("curves_HalfCheetah-v5.png", "es_vs_td3_HalfCheetah-v5.png", "ratio_sweep_HalfCheetah-v5.png"):

@@ -143,6 +143,47 @@ def write_table(rows: list[dict], out_dir: Path) -> tuple[Path, Path]:
     for r in rows:
         ci = "n/a" if math.isnan(r["iqm_ci_low"]) else f"[{r['iqm_ci_low']:.1f}, {r['iqm_ci_high']:.1f}]"
         lines.append(f"| {r['env']} | {label(r['algorithm'], r['ratio'])} | {r['runs']} | {r['td3_frames']} | {r['es_frames']} | {r['mean']:.1f} | {r['std']:.1f} | {r['median']:.1f} | {r['iqm']:.1f} {ci} |")
+    lines += [
+        "",
+        "Final return: deterministic evaluation of the policy each algorithm returns (ES-TD3: the ES mean;",
+        "its TD3 actor on the `: its TD3 actor` rows). TD3 frames (gradient-based learner's environment",
+        "steps) and ES frames (evolution's evaluation episodes) are counted separately: ES-TD3 variants",
+        "spend both, so at equal TD3 frames they have used many more environment frames in total.",
+    ]
+    md_path.write_text("\n".join(lines) + "\n")
+    return csv_path, md_path
+
+
+RUN_COLUMNS = ("env", "algorithm", "ratio", "seed", "final_return", "final_td3_actor_return", "overwrites", "td3_frames", "es_frames", "wall_time_s", "dir")
+
+
+def write_runs_table(runs: list[dict], out_dir: Path) -> tuple[Path, Path]:
+    """``runs.csv`` and ``runs.md``: one row per run (seed), the numbers behind each table row."""
+    rows = []
+    for run in runs:
+        s = run["summary"]
+        rows.append({**{key: s.get(key, "") for key in RUN_COLUMNS}, "ratio": ratio_text(s), "dir": str(run["dir"])})
+    rows.sort(key=lambda r: (r["env"], r["algorithm"], r["ratio"], r["seed"]))
+    csv_path, md_path = out_dir / "runs.csv", out_dir / "runs.md"
+    with csv_path.open("w", newline="") as handle:
+        writer = csv.DictWriter(handle, fieldnames=RUN_COLUMNS)
+        writer.writeheader()
+        writer.writerows(rows)
+
+    def number(value, digits=1):
+        return f"{value:.{digits}f}" if isinstance(value, (int, float)) else "-"
+
+    lines = [
+        "| env | algorithm | seed | final return | TD3 actor | overwrites | TD3 frames | ES frames | wall time (min) |",
+        "|---|---|---:|---:|---:|---:|---:|---:|---:|",
+    ]
+    for r in rows:
+        overwrites = r["overwrites"] if r["overwrites"] != "" else "-"
+        wall = number(r["wall_time_s"] / 60) if isinstance(r["wall_time_s"], (int, float)) else "-"
+        lines.append(
+            f"| {r['env']} | {label(r['algorithm'], r['ratio'])} | {r['seed']} | {number(r['final_return'])} | "
+            f"{number(r['final_td3_actor_return'])} | {overwrites} | {r['td3_frames']} | {r['es_frames']} | {wall} |"
+        )
     md_path.write_text("\n".join(lines) + "\n")
     return csv_path, md_path
 
@@ -289,5 +330,6 @@ def make_report(paths, out_dir) -> dict:
         raise FileNotFoundError(f"no run (summary.json + metrics.csv) under {[str(p) for p in paths]}")
     rows = results_table(runs)
     csv_path, md_path = write_table(rows, out_dir)
+    write_runs_table(runs, out_dir)
     figures = plot_learning_curves(runs, out_dir) + plot_es_vs_td3(runs, out_dir) + plot_ratio_sweep(runs, out_dir)
     return {"runs": len(runs), "rows": rows, "table_csv": csv_path, "table_md": md_path, "figures": figures}
