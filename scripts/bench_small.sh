@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
-# The runs behind docs/results.md: HalfCheetah-v5, seeds 0-2, one process per seed (one torch thread
-# each), algorithms one after another. Usage: scripts/bench_small.sh [out_dir]
+# The small-budget runs (experiment=bench_small, 8k TD3 frames): HalfCheetah-v5, seeds 0-2, one process per
+# seed (one torch thread each), algorithms one after another; a smoke test of the harness, not the
+# results in docs/results.md (scripts/bench.sh). Usage: scripts/bench_small.sh [out_dir]
 set -u
 OUT=${1:-bench_small}
 cd "$(dirname "$0")/.."
