@@ -64,10 +64,10 @@ def find_runs(paths) -> list[dict]:
     runs, seen = [], set()
     for root in map(Path, paths):
         for summary_path in sorted(root.rglob("summary.json")):
-            metrics_path = summary_path.with_name("metrics.csv")
-            if not metrics_path.exists() or summary_path.resolve() in seen:
+            metrics_path, resolved = summary_path.with_name("metrics.csv"), summary_path.resolve()
+            if not metrics_path.exists() or resolved in seen:
                 continue
-            seen.add(summary_path.resolve())
+            seen.add(resolved)
             summary = json.loads(summary_path.read_text())
             summary.setdefault("algorithm", "es_td3_buffers")  # runs written before the harness existed
             summary.setdefault("final_return", summary.get("final_es_mean_return"))
@@ -101,11 +101,11 @@ def results_table(runs: list[dict]) -> list[dict]:
     runs a second row ``<algorithm>/td3_actor`` with the final return of their TD3 actor."""
     groups: dict[tuple[str, str, str], list[dict]] = defaultdict(list)
     for run in runs:
-        summary = run["summary"]
-        groups[(summary["env"], summary["algorithm"], ratio_text(summary))].append(summary)
+        summary, ratio = run["summary"], ratio_text(run["summary"])
+        groups[(summary["env"], summary["algorithm"], ratio)].append(summary)
         if "final_td3_actor_return" in summary:
             actor = {**summary, "final_return": summary["final_td3_actor_return"]}
-            groups[(summary["env"], summary["algorithm"] + TD3_ACTOR_SUFFIX, ratio_text(summary))].append(actor)
+            groups[(summary["env"], summary["algorithm"] + TD3_ACTOR_SUFFIX, ratio)].append(actor)
     rows = []
     for (env, algorithm, ratio), summaries in sorted(groups.items()):
         finals = np.array([s["final_return"] for s in summaries], dtype=float)
@@ -179,7 +179,7 @@ def write_runs_table(runs: list[dict], out_dir: Path) -> tuple[Path, Path]:
     ]
     for r in rows:
         overwrites = r["overwrites"] if r["overwrites"] != "" else "-"
-        wall = number(r["wall_time_s"] / 60) if isinstance(r["wall_time_s"], (int, float)) else "-"
+        wall = number(r["wall_time_s"] / 60 if isinstance(r["wall_time_s"], (int, float)) else None)
         lines.append(
             f"| {r['env']} | {label(r['algorithm'], r['ratio'])} | {r['seed']} | {number(r['final_return'])} | "
             f"{number(r['final_td3_actor_return'])} | {overwrites} | {r['td3_frames']} | {r['es_frames']} | {wall} |"
@@ -259,7 +259,7 @@ def plot_es_vs_td3(runs: list[dict], out_dir: Path) -> list[Path]:
         if run["summary"]["algorithm"] == "es_td3_buffers" and run["metrics"] and "td3_eval_return" in run["metrics"][0]:
             by_env[run["summary"]["env"]].append(run)
     for env, group in sorted(by_env.items()):
-        group = sorted(group, key=lambda r: (str(r["summary"].get("ratio")), r["summary"]["seed"]))
+        group = sorted(group, key=lambda r: (ratio_text(r["summary"]), r["summary"]["seed"]))
         fig, axes = plt.subplots(1, len(group), figsize=(4 * len(group), 3.6), squeeze=False, sharey=True)
         for ax, run in zip(axes[0], group):
             rows = run["metrics"]
@@ -269,8 +269,7 @@ def plot_es_vs_td3(runs: list[dict], out_dir: Path) -> list[Path]:
             overwritten = [row["iteration"] for row in rows if row.get("overwritten") is True]
             for i, it in enumerate(overwritten):
                 ax.axvline(it, color="red", linestyle="--", alpha=0.6, label="ES mean overwritten" if i == 0 else None)
-            ratio = run["summary"].get("ratio")
-            ax.set_title(f"seed {run['summary']['seed']}, ratio {ratio}", fontsize=9)
+            ax.set_title(f"seed {run['summary']['seed']}, ratio {ratio_text(run['summary'])}", fontsize=9)
             ax.set_xlabel("iteration")
             ax.xaxis.set_major_locator(MaxNLocator(integer=True))
             ax.grid(alpha=0.3)
