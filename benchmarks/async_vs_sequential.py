@@ -25,7 +25,7 @@ from hydra import compose, initialize_config_dir
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from torchrl_esrl.metrics import read_metrics  # noqa: E402
+from torchrl_esrl.run.metrics import read_metrics  # noqa: E402
 
 # Small budget where both halves cost seconds per iteration, so overlap is visible.
 BUDGET = [

@@ -22,7 +22,7 @@ from benchmarks.common import SHAPES, fill, interleaved, save_report  # noqa: E4
 
 import torch  # noqa: E402
 
-from torchrl_esrl.buffers import MultiBuffer, make_buffer  # noqa: E402
+from torchrl_esrl.data.multibuffer import MultiBuffer, make_buffer  # noqa: E402
 
 
 def run(capacity: int = 1_000_000, batch_size: int = 256, ratio=(0.5, 0.2, 0.3), repeats: int = 7, calls: int = 300, env_id: str = "HalfCheetah-v5") -> dict:

@@ -37,9 +37,9 @@ import numpy as np
 import torch
 from torchrl.data import Bounded
 
-from torchrl_esrl.es_collector import GymBackend
-from torchrl_esrl.mujoco_batch import MujocoBatchBackend
-from torchrl_esrl.networks import PopulationActor, flat_parameters, load_flat_parameters, make_actor
+from torchrl_esrl.collectors.gym_backend import GymBackend
+from torchrl_esrl.collectors.mujoco_batch import MujocoBatchBackend
+from torchrl_esrl.modules.networks import PopulationActor, flat_parameters, load_flat_parameters, make_actor
 
 ENVS = ["HalfCheetah-v5", "Walker2d-v5"]
 

@@ -23,7 +23,7 @@ from benchmarks.common import SHAPES, fill, save_report, transitions  # noqa: E4
 
 import torch  # noqa: E402
 
-from torchrl_esrl.buffers import MultiBuffer  # noqa: E402
+from torchrl_esrl.data.multibuffer import MultiBuffer  # noqa: E402
 
 GIB = 2**30
 

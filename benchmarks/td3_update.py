@@ -1,4 +1,4 @@
-"""TD3 update rate: TorchRL TD3 (torchrl_esrl.td3.TD3) vs a hand-written plain PyTorch TD3 (figure 2).
+"""TD3 update rate: TorchRL TD3 (torchrl_esrl.objectives.td3.TD3) vs a hand-written plain PyTorch TD3 (figure 2).
 
 Batch 256 from a MultiBuffer (0.5:0.2:0.3, three full HalfCheetah-shaped buffers), the paper's
 networks (actor 17-256-256-6 tanh, twin critics 23-256-256-1 relu), Adam 3e-4, gamma 0.99,
@@ -31,9 +31,9 @@ import torch.nn.functional as F  # noqa: E402
 from torch import nn  # noqa: E402
 from torchrl.data import Bounded  # noqa: E402
 
-from torchrl_esrl.buffers import MultiBuffer  # noqa: E402
-from torchrl_esrl.networks import make_actor, make_critic  # noqa: E402
-from torchrl_esrl.td3 import TD3  # noqa: E402
+from torchrl_esrl.data.multibuffer import MultiBuffer  # noqa: E402
+from torchrl_esrl.modules.networks import make_actor, make_critic  # noqa: E402
+from torchrl_esrl.objectives.td3 import TD3  # noqa: E402
 
 
 def _mlp(inputs: int, outputs: int, activation, squash: bool = False) -> nn.Sequential:

@@ -17,8 +17,8 @@ from tqdm.auto import tqdm
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # run from a checkout without installing
 
-from torchrl_esrl.factories import make_actor_critic, make_es, make_es_collector, make_train_env  # noqa: E402
-from torchrl_esrl.harness import RunHarness, hydra_main  # noqa: E402
+from torchrl_esrl.run.factories import make_actor_critic, make_es, make_es_collector, make_train_env  # noqa: E402
+from torchrl_esrl.run.harness import RunHarness, hydra_main  # noqa: E402
 
 
 def train(cfg: DictConfig, run_dir: Path) -> dict:

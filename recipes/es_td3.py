@@ -6,7 +6,7 @@
 
 Each run writes metrics.csv, summary.json, the TorchRL logger's files and the final actors into
 its Hydra run directory, and checkpoints into its checkpoints/ folder: rerunning the command with
-the same hydra.run.dir, or resume=<run dir>, continues from the last one (torchrl_esrl/checkpoint.py).
+the same hydra.run.dir, or resume=<run dir>, continues from the last one (torchrl_esrl/run/checkpoint.py).
 """
 from __future__ import annotations
 
@@ -29,10 +29,10 @@ from tqdm.auto import tqdm  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # run from a checkout without installing
 
-from torchrl_esrl.async_es_td3 import BackgroundES  # noqa: E402
-from torchrl_esrl.checkpoint import RunCheckpoint, RunProgress, TD3EnvState, make_deterministic, prepare_run  # noqa: E402
-from torchrl_esrl.config import ConfigError  # noqa: E402
-from torchrl_esrl.factories import (  # noqa: E402
+from torchrl_esrl.algorithm.background_es import BackgroundES  # noqa: E402
+from torchrl_esrl.run.checkpoint import RunCheckpoint, RunProgress, TD3EnvState, make_deterministic, prepare_run  # noqa: E402
+from torchrl_esrl.errors import ConfigError  # noqa: E402
+from torchrl_esrl.run.factories import (  # noqa: E402
     make_actor_critic,
     make_es,
     make_es_collector,
@@ -43,13 +43,14 @@ from torchrl_esrl.factories import (  # noqa: E402
     make_threshold,
     make_train_env,
 )
-from torchrl_esrl.faults import check_finite, inject_faults_from_env  # noqa: E402
-from torchrl_esrl.es_phase import es_phase  # noqa: E402
-from torchrl_esrl.harness import RunHarness  # noqa: E402
-from torchrl_esrl.metrics import METRIC_COLUMNS  # noqa: E402
-from torchrl_esrl.networks import flat_parameters  # noqa: E402
-from torchrl_esrl.schema import run_cli  # noqa: E402
-from torchrl_esrl.td3 import td3_phase  # noqa: E402
+from torchrl_esrl.errors import check_finite
+from torchrl_esrl.run.faults import inject_faults_from_env  # noqa: E402
+from torchrl_esrl.algorithm.es_phase import es_phase  # noqa: E402
+from torchrl_esrl.run.harness import RunHarness  # noqa: E402
+from torchrl_esrl.run.metrics import METRIC_COLUMNS  # noqa: E402
+from torchrl_esrl.modules.networks import flat_parameters  # noqa: E402
+from torchrl_esrl.run.schema import run_cli  # noqa: E402
+from torchrl_esrl.algorithm.td3_phase import td3_phase  # noqa: E402
 
 
 def train(cfg: DictConfig, run_dir: Path) -> dict:

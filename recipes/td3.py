@@ -17,11 +17,11 @@ from tqdm.auto import tqdm
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # run from a checkout without installing
 
-from torchrl_esrl.buffers import MultiBuffer  # noqa: E402
-from torchrl_esrl.factories import make_actor_critic, make_td3, make_td3_batches, make_train_env  # noqa: E402
-from torchrl_esrl.harness import RunHarness, hydra_main  # noqa: E402
-from torchrl_esrl.networks import flat_parameters  # noqa: E402
-from torchrl_esrl.td3 import td3_phase  # noqa: E402
+from torchrl_esrl.data.multibuffer import MultiBuffer  # noqa: E402
+from torchrl_esrl.run.factories import make_actor_critic, make_td3, make_td3_batches, make_train_env  # noqa: E402
+from torchrl_esrl.run.harness import RunHarness, hydra_main  # noqa: E402
+from torchrl_esrl.modules.networks import flat_parameters  # noqa: E402
+from torchrl_esrl.algorithm.td3_phase import td3_phase  # noqa: E402
 
 
 def train(cfg: DictConfig, run_dir: Path) -> dict:

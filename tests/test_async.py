@@ -6,14 +6,14 @@ import pytest
 import torch
 
 from test_recipe import TINY, run_recipe
-from torchrl_esrl.async_es_td3 import BackgroundES, Guarded
-from torchrl_esrl.buffers import MultiBuffer
+from torchrl_esrl.algorithm.background_es import BackgroundES, Guarded
+from torchrl_esrl.data.multibuffer import MultiBuffer
 from torchrl_esrl.envs import make_env
-from torchrl_esrl.es import OpenES
-from torchrl_esrl.es_collector import ESCollector
-from torchrl_esrl.metrics import read_metrics
-from torchrl_esrl.networks import flat_parameters, make_actor
-from torchrl_esrl.threshold import Threshold
+from torchrl_esrl.es.openes import OpenES
+from torchrl_esrl.collectors.es_collector import ESCollector
+from torchrl_esrl.run.metrics import read_metrics
+from torchrl_esrl.modules.networks import flat_parameters, make_actor
+from torchrl_esrl.data.threshold import Threshold
 
 
 def swimmer_parts(generations=3):

@@ -4,8 +4,8 @@ from tensordict import TensorDict
 from torchrl.data import TensorDictReplayBuffer
 
 from torchrl_esrl import MultiBuffer
-from torchrl_esrl.buffers import ratio_counts, validate_ratio
-from torchrl_esrl.config import ConfigError
+from torchrl_esrl.data.multibuffer import ratio_counts, validate_ratio
+from torchrl_esrl.errors import ConfigError
 
 
 def transitions(n, fill=0.0, obs_dim=3, act_dim=1):

@@ -4,7 +4,7 @@ import math
 import pytest
 import torch
 
-from torchrl_esrl.cem import DiagonalCEM, elite_weights
+from torchrl_esrl.es.cem import DiagonalCEM, elite_weights
 
 
 def test_elite_weights_are_log_rank_weights_summing_to_one():

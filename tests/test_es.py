@@ -1,7 +1,7 @@
 import pytest
 import torch
 
-from torchrl_esrl.es import OpenES, centered_ranks
+from torchrl_esrl.es.openes import OpenES, centered_ranks
 
 
 def test_centered_ranks_span_minus_half_to_half_and_keep_order():

@@ -1,10 +1,10 @@
 import pytest
 import torch
 
-from torchrl_esrl.config import ConfigError
+from torchrl_esrl.errors import ConfigError
 from torchrl_esrl.envs import make_env
-from torchrl_esrl.es_collector import ESCollector
-from torchrl_esrl.networks import flat_parameters, make_actor
+from torchrl_esrl.collectors.es_collector import ESCollector
+from torchrl_esrl.modules.networks import flat_parameters, make_actor
 
 
 @pytest.fixture(scope="module")

@@ -7,10 +7,12 @@ import pytest
 import torch
 from torchrl.data import Bounded
 
-from torchrl_esrl.buffers import TRANSITION_KEYS
-from torchrl_esrl.es_collector import BACKENDS, ESCollector, GymBackend, default_backend
-from torchrl_esrl.mujoco_batch import MujocoBatchBackend
-from torchrl_esrl.networks import PopulationActor, flat_parameters, make_actor
+from torchrl_esrl.data.multibuffer import TRANSITION_KEYS
+from torchrl_esrl.collectors.backends import backend_class, default_backend
+from torchrl_esrl.collectors.es_collector import ESCollector
+from torchrl_esrl.collectors.gym_backend import GymBackend
+from torchrl_esrl.collectors.mujoco_batch import MujocoBatchBackend
+from torchrl_esrl.modules.networks import PopulationActor, flat_parameters, make_actor
 
 ENV_IDS = ["HalfCheetah-v5", "Walker2d-v5", "Ant-v5", "Swimmer-v5", "Hopper-v5"]
 TERMINATING = {"Walker2d-v5", "Ant-v5", "Hopper-v5"}
@@ -124,7 +126,7 @@ def test_early_terminated_members_contribute_only_their_steps(env_id):
 
 
 def test_registered_and_chosen_by_default():
-    assert BACKENDS["mujoco_batch"] is MujocoBatchBackend
+    assert backend_class("mujoco_batch") is MujocoBatchBackend
     for env_id in ENV_IDS:
         assert default_backend(env_id) == "mujoco_batch"
     assert default_backend("Pendulum-v1") == "gym"

@@ -4,7 +4,7 @@ import torch
 from tensordict import TensorDict
 
 from torchrl_esrl.envs import make_env
-from torchrl_esrl.networks import PopulationActor, flat_parameters, load_flat_parameters, make_actor
+from torchrl_esrl.modules.networks import PopulationActor, flat_parameters, load_flat_parameters, make_actor
 
 
 def test_actor_is_the_papers_2x256_tanh_network_within_bounds():

@@ -1,10 +1,10 @@
 import torch
 
 from torchrl_esrl.envs import make_env
-from torchrl_esrl.es import OpenES
-from torchrl_esrl.es_collector import ESCollector
-from torchrl_esrl.networks import flat_parameters, load_flat_parameters, make_actor
-from torchrl_esrl.overwrite import OverwriteRule
+from torchrl_esrl.es.openes import OpenES
+from torchrl_esrl.collectors.es_collector import ESCollector
+from torchrl_esrl.modules.networks import flat_parameters, load_flat_parameters, make_actor
+from torchrl_esrl.algorithm.overwrite import OverwriteRule
 
 
 def test_decision_uses_the_average_over_the_window():

@@ -20,9 +20,9 @@ ray = pytest.importorskip("ray", reason="Ray is the optional extra 'ray' (includ
 from ray.cluster_utils import Cluster  # noqa: E402
 
 from torchrl_esrl.envs import make_env  # noqa: E402
-from torchrl_esrl.es_collector import ESCollector  # noqa: E402
-from torchrl_esrl.networks import flat_parameters, make_actor  # noqa: E402
-from torchrl_esrl.ray_backend import member_shares  # noqa: E402
+from torchrl_esrl.collectors.es_collector import ESCollector  # noqa: E402
+from torchrl_esrl.modules.networks import flat_parameters, make_actor  # noqa: E402
+from torchrl_esrl.collectors.ray_backend import member_shares  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 NODE = {"num_cpus": 1, "object_store_memory": 80 * 2**20, "node_ip_address": "127.0.0.1"}

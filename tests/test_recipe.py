@@ -6,7 +6,7 @@ from pathlib import Path
 
 import pytest
 
-from torchrl_esrl.metrics import METRIC_COLUMNS, read_metrics
+from torchrl_esrl.run.metrics import METRIC_COLUMNS, read_metrics
 
 ROOT = Path(__file__).resolve().parents[1]
 TINY = [

@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from torchrl_esrl.metrics import read_metrics
+from torchrl_esrl.run.metrics import read_metrics
 
 ROOT = Path(__file__).resolve().parents[1]
 # Episodes of 60 steps and checkpoints every 100 TD3 frames: mid-phase checkpoints land mid-episode.
@@ -130,8 +130,8 @@ VALUE_ERRORS = [
 def test_bad_value_gives_a_one_line_error_naming_the_field(tmp_path, override, field):
     from hydra import compose, initialize_config_dir
 
-    from torchrl_esrl.checkpoint import prepare_run
-    from torchrl_esrl.config import ConfigError
+    from torchrl_esrl.run.checkpoint import prepare_run
+    from torchrl_esrl.errors import ConfigError
 
     with initialize_config_dir(str(ROOT / "conf"), version_base="1.3"):
         cfg = compose("config", overrides=[*TINY, override])

@@ -6,11 +6,13 @@ from torchrl.objectives import DDPGLoss
 
 from torchrl_esrl import MultiBuffer
 from torchrl_esrl.envs import make_env
-from torchrl_esrl.es import OpenES
-from torchrl_esrl.es_collector import ESCollector
-from torchrl_esrl.networks import flat_parameters, make_actor, make_critic
-from torchrl_esrl.td3 import TD3, finished_episode_returns, make_td3_collector, td3_phase
-from torchrl_esrl.threshold import Threshold
+from torchrl_esrl.es.openes import OpenES
+from torchrl_esrl.collectors.es_collector import ESCollector
+from torchrl_esrl.modules.networks import flat_parameters, make_actor, make_critic
+from torchrl_esrl.algorithm.td3_phase import td3_phase
+from torchrl_esrl.collectors.td3_collector import finished_episode_returns, make_td3_collector
+from torchrl_esrl.objectives.td3 import TD3
+from torchrl_esrl.data.threshold import Threshold
 
 
 def build(env_name, seed=0, hidden=(256, 256), **td3_kwargs):
@@ -151,7 +153,7 @@ def test_q1_actor_loss_gradient_equals_td3loss():
     from torchrl.data import Bounded
     from torchrl.objectives import TD3Loss
 
-    from torchrl_esrl.td3 import TD3LossQ1Actor
+    from torchrl_esrl.objectives.td3 import TD3LossQ1Actor
 
     torch.manual_seed(0)
     spec = Bounded(-torch.ones(6), torch.ones(6), shape=(6,))

@@ -3,7 +3,7 @@ import math
 import pytest
 import torch
 
-from torchrl_esrl.threshold import Threshold
+from torchrl_esrl.data.threshold import Threshold
 
 
 def test_positive_best_gives_ninety_percent():

@@ -2,7 +2,7 @@
 
 TD3 acts through a TorchRL :class:`~torchrl.envs.GymEnv` (float32 observations, episode
 return and step count transforms); ES evaluates populations through the backends of
-:mod:`torchrl_esrl.es_collector`. Both resolve names with :func:`resolve_env_id`.
+:mod:`torchrl_esrl.collectors.es_collector`. Both resolve names with :func:`resolve_env_id`.
 """
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ import difflib
 import logging
 
 import gymnasium as gym
-from torchrl_esrl.config import ConfigError
+from torchrl_esrl.errors import ConfigError
 from torchrl.envs import Compose, DoubleToFloat, GymEnv, RewardSum, StepCounter, TransformedEnv
 
 # Short names used by the Hydra config group ``env``.

@@ -2,7 +2,7 @@
 ES-vs-TD3 curves with overwrite events, and a ratio sweep.
 
 A *run* is a directory holding ``summary.json`` and ``metrics.csv`` as written by
-:class:`torchrl_esrl.harness.RunHarness`; any directory above runs (a Hydra multirun, a folder of
+:class:`torchrl_esrl.run.harness.RunHarness`; any directory above runs (a Hydra multirun, a folder of
 runs) is searched recursively.
 
 - Table: per env x algorithm, the final return of the returned policy (``final_return``) over
@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 from scipy import stats
 
-from torchrl_esrl.metrics import read_metrics
+from torchrl_esrl.run.metrics import read_metrics
 
 TABLE_COLUMNS = ("env", "algorithm", "ratio", "runs", "td3_frames", "es_frames", "mean", "std", "median", "iqm", "iqm_ci_low", "iqm_ci_high")
 ALGORITHM_LABELS = {

@@ -1,9 +1,7 @@
 """Configuration errors and checks run before any expensive work starts."""
 from __future__ import annotations
 
-
-class ConfigError(ValueError):
-    """A configuration value is invalid; the message is one line naming the field and what is allowed."""
+from torchrl_esrl.errors import ConfigError
 
 
 def _positive(cfg, field: str, integer: bool = False) -> None:
@@ -22,7 +20,7 @@ def _get(cfg, field: str):
 
 def validate_config(cfg) -> None:
     """Value checks run before any environment, network or buffer is built."""
-    from torchrl_esrl.buffers import validate_ratio
+    from torchrl_esrl.data.multibuffer import validate_ratio
     from torchrl_esrl.envs import resolve_env_id
 
     resolve_env_id(cfg.env.id)

@@ -1,4 +1,4 @@
-"""ES offspring evaluated by Ray workers (issue 6; paper, Algorithm 1 "Evaluate", spread over machines).
+"""ES offspring evaluated by Ray workers (paper, Algorithm 1 "Evaluate", spread over machines).
 
 OpenAI-ES is embarrassingly parallel (Salimans et al. 2017): every offspring's episode is
 independent. :class:`RayBackend` is an ES collector backend (``es.backend=ray``) that splits a
@@ -21,8 +21,9 @@ from collections.abc import Sequence
 
 import torch
 
-from torchrl_esrl.es_collector import Generation
-from torchrl_esrl.networks import PopulationActor
+from torchrl_esrl.collectors.backends import LOCAL_BACKENDS, backend_class, default_backend
+from torchrl_esrl.collectors.generation import Generation
+from torchrl_esrl.modules.networks import PopulationActor
 
 TRAJ_IDS = ("collector", "traj_ids")
 
@@ -31,14 +32,12 @@ class _RolloutWorker:
     """Body of one Ray actor: a local ES backend over this worker's share of the population."""
 
     def __init__(self, env_id: str, population_actor: PopulationActor, max_episode_steps, backend: str, backend_kwargs: dict):
-        from torchrl_esrl.es_collector import BACKENDS, default_backend
-
         torch.set_num_threads(max(1, int(backend_kwargs.pop("torch_threads", 1))))
         backend = default_backend(env_id) if backend == "auto" else backend
-        if backend not in BACKENDS or backend == "ray":
-            raise ValueError(f"ray.worker_backend: '{backend}' is not a local backend (allowed: auto, {', '.join(b for b in BACKENDS if b != 'ray')})")
+        if backend not in LOCAL_BACKENDS:
+            raise ValueError(f"ray.worker_backend: '{backend}' is not a local backend (allowed: auto, {', '.join(LOCAL_BACKENDS)})")
         self.backend_name = backend
-        self.backend = BACKENDS[backend](env_id, population_actor, max_episode_steps=max_episode_steps, **backend_kwargs)
+        self.backend = backend_class(backend)(env_id, population_actor, max_episode_steps=max_episode_steps, **backend_kwargs)
 
     def name(self) -> str:
         return self.backend_name

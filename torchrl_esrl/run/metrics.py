@@ -14,7 +14,7 @@ from pathlib import Path
 
 from torchrl.record.loggers import get_logger
 
-# Columns every recipe writes (torchrl_esrl.harness): the report reads these.
+# Columns every recipe writes (torchrl_esrl.run.harness): the report reads these.
 CORE_COLUMNS = (
     "iteration",
     "td3_frames",

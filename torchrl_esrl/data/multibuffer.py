@@ -21,7 +21,7 @@ import torch
 from tensordict import TensorDict, TensorDictBase
 from torchrl.data import LazyTensorStorage, RandomSampler, TensorDictReplayBuffer
 
-from torchrl_esrl.config import ConfigError
+from torchrl_esrl.errors import ConfigError
 
 BUFFER_NAMES = ("good", "bad", "noisy")
 

@@ -11,24 +11,12 @@ environment variable ``ESRL_INJECT_NAN=<where>@<iteration>`` corrupts the real r
 """
 from __future__ import annotations
 
-import math
 import os
 
 import torch
 
 INJECT_ENV_VAR = "ESRL_INJECT_NAN"
 INJECTION_POINTS = ("td3_batch", "es_return", "es_mean")
-
-
-def check_finite(name: str, value):
-    """Return ``value``; raise FloatingPointError if it (a number or a tensor) holds NaN or inf."""
-    if isinstance(value, torch.Tensor):
-        bad = int((~torch.isfinite(value)).sum())
-        if bad:
-            raise FloatingPointError(f"{name} has {bad} non-finite entr{'y' if bad == 1 else 'ies'}")
-    elif not math.isfinite(float(value)):
-        raise FloatingPointError(f"{name} is {value}")
-    return value
 
 
 def inject_faults_from_env(progress, es, buffer, spec: str | None = None) -> None:

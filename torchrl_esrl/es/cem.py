@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import torch
 
-from torchrl_esrl.networks import flat_parameters, load_flat_parameters
+from torchrl_esrl.modules.networks import flat_parameters, load_flat_parameters
 
 
 def elite_weights(num_elites: int) -> torch.Tensor:

@@ -1,7 +1,7 @@
-"""Fast ES population evaluation on MuJoCo's batched executor (issue 3; paper, Algorithm 1 "Evaluate").
+"""Fast ES population evaluation on MuJoCo's batched executor (paper, Algorithm 1 "Evaluate").
 
 :class:`MujocoBatchBackend` plays one episode per population member like the reference
-``"gym"`` backend (:class:`torchrl_esrl.es_collector.GymBackend`), but steps all members' physics
+``"gym"`` backend (:class:`torchrl_esrl.collectors.gym_backend.GymBackend`), but steps all members' physics
 with one ``mujoco.batch.Batch.step`` call per env step (MuJoCo's own thread pool, no processes)
 and recomputes observations, rewards, termination and truncation of the gymnasium v5 tasks in
 vectorised numpy over the live members.
@@ -29,8 +29,8 @@ import numpy as np
 import torch
 
 from torchrl_esrl.envs import make_gym_env, resolve_env_id
-from torchrl_esrl.es_collector import Generation, transitions_from_arrays
-from torchrl_esrl.networks import PopulationActor
+from torchrl_esrl.collectors.generation import Generation, transitions_from_arrays
+from torchrl_esrl.modules.networks import PopulationActor
 
 _INTEGRATION_STATE = mujoco.mjtState.mjSTATE_INTEGRATION
 
@@ -272,13 +272,3 @@ class MujocoBatchBackend:
             obs_traj[:, :-1], actions, obs_traj[:, 1:], rewards, terminated, truncated, lengths, returns
         )
         return Generation(torch.as_tensor(returns), torch.as_tensor(lengths), transitions)
-
-
-def register() -> None:
-    """Add this backend to :data:`torchrl_esrl.es_collector.BACKENDS` (the default for :data:`TASKS`)."""
-    from torchrl_esrl import es_collector
-
-    es_collector.BACKENDS.setdefault(MujocoBatchBackend.name, MujocoBatchBackend)
-
-
-register()

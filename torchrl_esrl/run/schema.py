@@ -6,7 +6,7 @@ composing, before anything runs. Values themselves live in the YAML files (``???
 A key added to the YAML must be added here too.
 
 :func:`run_cli` calls a ``@hydra.main`` function so that configuration errors (Hydra's, OmegaConf's
-and :class:`~torchrl_esrl.config.ConfigError`) come out as one line on stderr and exit 2,
+and :class:`~torchrl_esrl.run.config.ConfigError`) come out as one line on stderr and exit 2,
 without a traceback. :class:`ValidateBeforeRun` is a Hydra callback that runs the value checks
 before Hydra writes anything into the run directory.
 """
@@ -108,7 +108,7 @@ class CheckpointConfig:
 
 @dataclass
 class RayConfig:
-    """es.backend=ray (torchrl_esrl/ray_backend.py)."""
+    """es.backend=ray (torchrl_esrl/collectors/ray_backend.py)."""
 
     address: Optional[str] = None  # None: start Ray on this machine; "auto" or "host:port": join a cluster
     num_workers: int = 2
@@ -119,7 +119,7 @@ class RayConfig:
 
 @dataclass
 class CEMConfig:
-    """CEM-RL baseline (recipes/cem_rl.py, torchrl_esrl/cem.py); unused by ES-TD3Buffers."""
+    """CEM-RL baseline (recipes/cem_rl.py, torchrl_esrl/es/cem.py); unused by ES-TD3Buffers."""
 
     population_size: int = 10
     rl_fraction: float = 0.5
@@ -148,7 +148,7 @@ class ESTD3Config:
     overwrite: OverwriteConfig = field(default_factory=OverwriteConfig)
     eval: EvalConfig = field(default_factory=EvalConfig)
     logger: LoggerConfig = field(default_factory=LoggerConfig)
-    mode: str = "sequential"  # sequential | async (torchrl_esrl/async_es_td3.py)
+    mode: str = "sequential"  # sequential | async (torchrl_esrl/algorithm/background_es.py)
     ray: RayConfig = field(default_factory=RayConfig)
     checkpoint: CheckpointConfig = field(default_factory=CheckpointConfig)
     cem: Optional[CEMConfig] = None  # only conf/cem_rl.yaml sets it
@@ -165,8 +165,8 @@ class ValidateBeforeRun(Callback):
     """Hydra callback: value checks before Hydra creates or writes the run directory."""
 
     def on_run_start(self, config, **kwargs: Any) -> None:
-        from torchrl_esrl.checkpoint import prepare_run
-        from torchrl_esrl.config import ConfigError
+        from torchrl_esrl.run.checkpoint import prepare_run
+        from torchrl_esrl.errors import ConfigError
 
         try:
             prepare_run(config, config.hydra.run.dir)
@@ -200,7 +200,7 @@ def run_cli(main) -> None:
     from hydra.errors import HydraException
     from omegaconf.errors import OmegaConfBaseException
 
-    from torchrl_esrl.config import ConfigError
+    from torchrl_esrl.errors import ConfigError
 
     full_error = os.environ.get("HYDRA_FULL_ERROR")
     os.environ["HYDRA_FULL_ERROR"] = "1"  # let Hydra raise instead of printing a multi-line report

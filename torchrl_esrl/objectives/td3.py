@@ -2,18 +2,13 @@
 
 :class:`TD3` holds TorchRL's :class:`~torchrl.objectives.TD3Loss` (twin critics, target policy
 smoothing), the :class:`~torchrl.objectives.SoftUpdate` of the targets, one Adam per network and
-the policy delay. :func:`td3_phase` is the inner loop of Algorithm 1: act with Gaussian
-exploration noise, store every transition in the ``noisy`` buffer, and once the buffer is
-ready, do one TD3 update per environment frame.
+the policy delay; :func:`torchrl_esrl.algorithm.td3_phase.td3_phase` runs it inside Algorithm 1.
 """
 from __future__ import annotations
-
-from collections.abc import Callable, Iterator
 
 import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictSequential
-from torchrl.collectors import Collector
 from torchrl.modules import AdditiveGaussianModule
 from torchrl.objectives import SoftUpdate, TD3Loss
 
@@ -177,70 +172,3 @@ class TD3:
         self.actor_optimizer.load_state_dict(state["actor_optimizer"])
         self.critic_optimizer.load_state_dict(state["critic_optimizer"])
         self.updates = int(state["updates"])
-
-
-def make_td3_collector(env, td3: TD3, frames_per_batch: int = 1) -> Collector:
-    """TorchRL collector acting with the exploration policy; runs for as long as it is iterated."""
-    return Collector(
-        env,
-        td3.exploration_policy,
-        frames_per_batch=int(frames_per_batch),
-        total_frames=-1,
-        auto_register_policy_transforms=False,
-    )
-
-
-def finished_episode_returns(batch: TensorDictBase) -> list[float]:
-    """Returns of the episodes that ended inside a collected batch (from TorchRL's ``RewardSum``)."""
-    done = batch.get(("next", "done")).reshape(-1)
-    if not done.any():
-        return []
-    return batch.get(("next", "episode_reward")).reshape(-1)[done].tolist()
-
-
-def td3_phase(
-    frames: int,
-    batches: Iterator[TensorDictBase],
-    td3: TD3,
-    buffer,
-    on_episode: Callable[[float], None] | None = None,
-    updates_per_frame: float = 1.0,
-    on_batch: Callable[[int, dict], None] | None = None,
-    progress=None,
-) -> dict[str, float]:
-    """Act for ``frames`` frames, writing to ``buffer``'s noisy part and learning once it is ready.
-
-    ``batches`` is an iterator over a TorchRL collector (kept alive across phases so episodes
-    continue where they stopped). ``buffer`` is a :class:`~torchrl_esrl.buffers.MultiBuffer`
-    (written under ``"noisy"``) or any TorchRL replay buffer. ``on_episode`` sees each finished
-    training episode's return (Algorithm 1 lets them raise the threshold). ``progress`` (a
-    :class:`~torchrl_esrl.checkpoint.PhaseProgress`) holds the phase's counters: pass the one
-    restored from a checkpoint to finish a phase interrupted mid-way.
-    """
-    from torchrl_esrl.checkpoint import PhaseProgress
-
-    p = PhaseProgress() if progress is None else progress
-    is_multibuffer = hasattr(buffer, "ready")
-    while p.collected < frames:
-        batch = next(batches)
-        p.collected += batch.numel()
-        if is_multibuffer:
-            buffer.extend(batch, "noisy")
-        else:
-            buffer.extend(batch)
-        for episode_return in finished_episode_returns(batch):
-            p.episodes += 1
-            if on_episode is not None:
-                on_episode(episode_return)
-        if buffer.ready() if is_multibuffer else len(buffer) > 0:
-            p.owed += batch.numel() * updates_per_frame  # fractional updates carried between batches
-            while p.owed >= 1:
-                p.owed -= 1
-                for key, value in td3.update(buffer.sample()).items():
-                    p.losses.setdefault(key, []).append(value)
-                p.updates += 1
-        if on_batch is not None:
-            on_batch(batch.numel(), {"updates": p.updates, "episodes": p.episodes})
-    stats = {"updates": p.updates, "episodes": p.episodes, "frames": p.collected}
-    stats.update({key: sum(v) / len(v) for key, v in p.losses.items()})
-    return stats

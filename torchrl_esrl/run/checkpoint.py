@@ -40,6 +40,8 @@ import torch
 from tensordict import TensorDict
 from torchrl.checkpoint import Checkpoint, CheckpointRotation, GlobalRNGState
 
+from torchrl_esrl.algorithm.td3_phase import PhaseProgress
+
 CHECKPOINT_DIR = "checkpoints"
 
 
@@ -52,32 +54,6 @@ def make_deterministic(threads: int | None = None) -> None:
 
 
 # ------------------------------------------------------------------------------ loop state
-@dataclass
-class PhaseProgress:
-    """How far one TD3 phase (Algorithm 1, "for M frames") has got; :func:`td3_phase` resumes it."""
-
-    collected: int = 0
-    updates: int = 0
-    episodes: int = 0
-    owed: float = 0.0
-    losses: dict[str, list[float]] = field(default_factory=dict)
-
-    def state_dict(self) -> dict:
-        # Losses as float64 tensors: exact for Python floats and compact in TensorDict files.
-        return {
-            "collected": self.collected,
-            "updates": self.updates,
-            "episodes": self.episodes,
-            "owed": self.owed,
-            "losses": {k: torch.tensor(v, dtype=torch.float64) for k, v in self.losses.items()},
-        }
-
-    def load_state_dict(self, state: dict) -> None:
-        self.collected, self.updates, self.episodes = int(state["collected"]), int(state["updates"]), int(state["episodes"])
-        self.owed = float(state["owed"])
-        self.losses = {k: torch.as_tensor(v).tolist() for k, v in state["losses"].items()}
-
-
 @dataclass
 class RunProgress:
     """Position of the outer loop of Algorithm 1 (what the recipe's local counters were)."""
@@ -318,11 +294,12 @@ def prepare_run(cfg, hydra_run_dir):
 
     ``resume=<dir>`` continues ``<dir>`` with the config saved in its checkpoint (``logger``
     and ``checkpoint`` settings from the command line). Returns ``(config, run_dir)``; raises
-    :class:`~torchrl_esrl.config.ConfigError` with a one-line message.
+    :class:`~torchrl_esrl.run.config.ConfigError` with a one-line message.
     """
     from omegaconf import OmegaConf
 
-    from torchrl_esrl.config import ConfigError, check_output_dir, validate_config
+    from torchrl_esrl.errors import ConfigError
+    from torchrl_esrl.run.config import check_output_dir, validate_config
 
     resume = cfg.get("resume")
     run_dir = Path(str(resume if resume else hydra_run_dir)).expanduser()

@@ -23,7 +23,7 @@ from concurrent.futures import Future, ThreadPoolExecutor
 
 import torch
 
-from torchrl_esrl.es_phase import es_phase
+from torchrl_esrl.algorithm.es_phase import es_phase
 
 
 class Guarded:

@@ -5,7 +5,7 @@ from collections.abc import Callable
 
 import torch
 
-from torchrl_esrl.faults import check_finite
+from torchrl_esrl.errors import check_finite
 
 
 def es_phase(

@@ -11,14 +11,15 @@ import numpy as np
 import torch
 from omegaconf import DictConfig
 
-from torchrl_esrl.buffers import MultiBuffer
+from torchrl_esrl.data.multibuffer import MultiBuffer
 from torchrl_esrl.envs import make_env
-from torchrl_esrl.es import OpenES
-from torchrl_esrl.es_collector import ESCollector
-from torchrl_esrl.networks import flat_parameters, make_actor, make_critic
-from torchrl_esrl.overwrite import OverwriteRule
-from torchrl_esrl.td3 import TD3, make_td3_collector
-from torchrl_esrl.threshold import Threshold
+from torchrl_esrl.es.openes import OpenES
+from torchrl_esrl.collectors.es_collector import ESCollector
+from torchrl_esrl.modules.networks import flat_parameters, make_actor, make_critic
+from torchrl_esrl.algorithm.overwrite import OverwriteRule
+from torchrl_esrl.collectors.td3_collector import make_td3_collector
+from torchrl_esrl.objectives.td3 import TD3
+from torchrl_esrl.data.threshold import Threshold
 
 
 def seed_everything(seed: int) -> None:
@@ -96,7 +97,7 @@ def make_es(cfg: DictConfig, actor) -> OpenES:
 
 def make_cem(cfg: DictConfig, actor):
     """CEM-RL's diagonal CEM (baseline, ``conf/cem_rl.yaml``) centred on the actor's parameters."""
-    from torchrl_esrl.cem import DiagonalCEM
+    from torchrl_esrl.es.cem import DiagonalCEM
 
     c = cfg.cem
     return DiagonalCEM(
@@ -114,7 +115,7 @@ def make_cem(cfg: DictConfig, actor):
 def make_es_collector(cfg: DictConfig, actor) -> ESCollector:
     backend_kwargs = {}
     if cfg.es.backend == "ray":  # offspring evaluated on a Ray cluster, see the `ray` config section
-        from torchrl_esrl.ray_backend import ray_backend_kwargs
+        from torchrl_esrl.collectors.ray_backend import ray_backend_kwargs
 
         backend_kwargs = ray_backend_kwargs(cfg)
     return ESCollector(cfg.env.id, actor, backend=cfg.es.backend, max_episode_steps=cfg.env.max_episode_steps, seed=int(cfg.seed) + 2, **backend_kwargs)

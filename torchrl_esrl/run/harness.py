@@ -23,12 +23,13 @@ import torch
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf
 
-from torchrl_esrl.config import ConfigError, validate_config
+from torchrl_esrl.errors import ConfigError
+from torchrl_esrl.run.config import validate_config
 from torchrl_esrl.envs import quiet_logs
-from torchrl_esrl.es_collector import ESCollector
-from torchrl_esrl.factories import seed_everything
-from torchrl_esrl.metrics import CORE_COLUMNS, MetricsLog, write_json
-from torchrl_esrl.schema import run_cli
+from torchrl_esrl.collectors.es_collector import ESCollector
+from torchrl_esrl.run.factories import seed_everything
+from torchrl_esrl.run.metrics import CORE_COLUMNS, MetricsLog, write_json
+from torchrl_esrl.run.schema import run_cli
 
 
 class RunHarness:
@@ -114,13 +115,13 @@ class RunHarness:
         return summary
 
 
-CONF_DIR = Path(__file__).resolve().parents[1] / "conf"
+CONF_DIR = Path(__file__).resolve().parents[2] / "conf"
 
 
 def hydra_main(train: Callable[[DictConfig, Path], dict], config_name: str) -> Callable[[], None]:
     """The ``main`` of a baseline recipe: Hydra config ``conf/<config_name>.yaml``, fail-fast
     validation, then ``train(cfg, run_dir)`` in the Hydra run directory. Called through
-    :func:`~torchrl_esrl.schema.run_cli`, as ``recipes/es_td3.py`` is: Hydra's own config errors
+    :func:`~torchrl_esrl.run.schema.run_cli`, as ``recipes/es_td3.py`` is: Hydra's own config errors
     (unknown keys, wrong types) are one line too, and a numerical fault stops with one line."""
 
     @hydra.main(version_base="1.3", config_path=str(CONF_DIR), config_name=config_name)

@@ -1,0 +1,73 @@
+"""The ES collector (paper, Algorithms 1 and 2 "Evaluate"): every offspring plays one full
+episode; its return is its fitness and its trajectory feeds the good/bad buffers.
+
+:class:`ESCollector` evaluates a whole population ``params[P, D]`` and returns a
+:class:`~torchrl_esrl.collectors.generation.Generation`. Backends do the stepping; they are
+named in :mod:`torchrl_esrl.collectors.backends`.
+"""
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+import torch
+
+from torchrl_esrl.collectors.backends import BACKENDS, available_backends, backend_class, default_backend
+from torchrl_esrl.collectors.generation import Generation
+from torchrl_esrl.envs import resolve_env_id
+from torchrl_esrl.errors import ConfigError
+from torchrl_esrl.modules.networks import PopulationActor
+
+
+class ESCollector:
+    """Evaluates populations of actors for one full episode each (fitness = episode return).
+
+    Args:
+        env_id: short name (``halfcheetah``) or gymnasium id.
+        actor: the actor built by :func:`torchrl_esrl.modules.networks.make_actor` (its architecture and
+            action bounds define every member).
+        backend: ``"auto"`` or a name in :data:`BACKENDS`.
+        max_episode_steps: episode length limit (the env's own when None).
+        seed: seeds the stream of episode seeds (one fresh reset seed per member and call).
+    """
+
+    def __init__(self, env_id: str, actor, backend: str = "auto", max_episode_steps: int | None = None, seed: int = 0, **backend_kwargs):
+        self.env_id = resolve_env_id(env_id)
+        self.population_actor = PopulationActor(actor)
+        if backend == "auto":
+            backend = default_backend(self.env_id)
+        if backend not in BACKENDS:
+            raise ConfigError(f"es.backend: unknown backend '{backend}' (allowed: {', '.join(available_backends())})")
+        self.backend = backend_class(backend)(self.env_id, self.population_actor, max_episode_steps=max_episode_steps, **backend_kwargs)
+        self.seeds = np.random.default_rng(seed)
+        self.frames = 0
+
+    def evaluate(self, params: torch.Tensor, seeds: Sequence[int] | None = None) -> Generation:
+        """Play one episode per row of ``params`` ([P, D], or [D] for a single actor)."""
+        params = params.detach().float()
+        if params.dim() == 1:
+            params = params.unsqueeze(0)
+        if params.shape[1] != self.population_actor.num_parameters:
+            raise ValueError(f"expected {self.population_actor.num_parameters} parameters per member, got {params.shape[1]}")
+        if seeds is None:
+            seeds = self.seeds.integers(0, 2**31 - 1, size=params.shape[0]).tolist()
+        generation = self.backend.rollout(params.contiguous(), seeds)
+        self.frames += generation.frames
+        return generation
+
+    def evaluate_policy(self, vector: torch.Tensor, episodes: int, seeds: Sequence[int] | None = None) -> Generation:
+        """Deterministic evaluation of one actor (flat parameters) over ``episodes`` episodes.
+
+        These frames are evaluation frames, not ES frames: they are not added to ``frames``.
+        """
+        frames = self.frames
+        generation = self.evaluate(vector.reshape(1, -1).expand(episodes, -1), seeds)
+        self.frames = frames
+        return generation
+
+    def state_dict(self) -> dict:
+        return {"seeds": self.seeds.bit_generator.state, "frames": self.frames}
+
+    def load_state_dict(self, state: dict) -> None:
+        self.seeds.bit_generator.state = state["seeds"]
+        self.frames = int(state["frames"])

@@ -1,0 +1,65 @@
+"""What one population evaluation produces (paper, Algorithm 2 "Evaluate"): per-member returns and
+lengths, and all *real* transitions in TorchRL's layout::
+
+    observation, action,
+    next/{observation, reward, done, terminated, truncated},
+    episode_return,            # the return of the episode the transition belongs to
+    collector/traj_ids         # the member (offspring) index
+
+Members whose episode ends early contribute only the steps they took.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from tensordict import TensorDict
+
+
+@dataclass
+class Generation:
+    """What one population evaluation produced."""
+
+    returns: torch.Tensor  # [P] float64, undiscounted episode returns (the fitness)
+    lengths: torch.Tensor  # [P] int64, steps of each episode
+    transitions: TensorDict  # [sum(lengths)] flat, member-major, time-ordered within a member
+
+    @property
+    def frames(self) -> int:
+        return int(self.lengths.sum())
+
+    def member_mask(self, members: torch.Tensor) -> torch.Tensor:
+        """Transition mask selecting the members where ``members[P]`` (bool) is True."""
+        return members[self.transitions.get(("collector", "traj_ids"))]
+
+
+def transitions_from_arrays(obs, actions, next_obs, rewards, terminated, truncated, lengths, returns) -> TensorDict:
+    """Flatten padded ``[P, T, ...]`` numpy arrays into the TorchRL transition layout (real steps only)."""
+    population, horizon = rewards.shape
+    lengths_t = torch.as_tensor(lengths, dtype=torch.long)
+    valid = torch.arange(horizon)[None, :] < lengths_t[:, None]  # [P, T]
+    members = torch.arange(population)[:, None].expand(population, horizon)[valid]
+
+    def take(array, dtype):
+        return torch.as_tensor(array)[valid].to(dtype)
+
+    reward = take(rewards, torch.float32).unsqueeze(-1)
+    term = take(terminated, torch.bool).unsqueeze(-1)
+    trunc = take(truncated, torch.bool).unsqueeze(-1)
+    n = reward.shape[0]
+    return TensorDict(
+        {
+            "observation": take(obs, torch.float32),
+            "action": take(actions, torch.float32),
+            "next": {
+                "observation": take(next_obs, torch.float32),
+                "reward": reward,
+                "done": term | trunc,
+                "terminated": term,
+                "truncated": trunc,
+            },
+            "episode_return": torch.as_tensor(returns, dtype=torch.float32)[members].unsqueeze(-1),
+            "collector": {"traj_ids": members},
+        },
+        batch_size=[n],
+    )

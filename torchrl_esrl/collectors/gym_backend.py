@@ -1,0 +1,62 @@
+"""The reference ES backend: one gymnasium env per member, stepped in lock-step with one batched
+policy forward per step. Any gymnasium id works; the fast backends are checked against it."""
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+import torch
+
+from torchrl_esrl.collectors.generation import Generation, transitions_from_arrays
+from torchrl_esrl.envs import make_gym_env, resolve_env_id
+from torchrl_esrl.modules.networks import PopulationActor
+
+
+class GymBackend:
+    """Reference backend: P gymnasium envs stepped in lock-step, one batched forward per step."""
+
+    name = "gym"
+
+    def __init__(self, env_id: str, population_actor: PopulationActor, max_episode_steps: int | None = None):
+        self.env_id = resolve_env_id(env_id)
+        self.policy = population_actor
+        self.max_episode_steps = max_episode_steps
+        self.envs: list = []
+        probe = self._env(0)
+        self.horizon = int(probe.spec.max_episode_steps or 1000)
+        self.observation_dim = int(np.prod(probe.observation_space.shape))
+        self.action_dim = int(np.prod(probe.action_space.shape))
+
+    def _env(self, i: int):
+        while len(self.envs) <= i:
+            self.envs.append(make_gym_env(self.env_id, self.max_episode_steps))
+        return self.envs[i]
+
+    def rollout(self, params: torch.Tensor, seeds: Sequence[int]) -> Generation:
+        population, horizon = params.shape[0], self.horizon
+        obs = np.zeros((population, horizon, self.observation_dim))
+        next_obs = np.zeros_like(obs)
+        actions = np.zeros((population, horizon, self.action_dim), dtype=np.float32)
+        rewards = np.zeros((population, horizon))
+        terminated = np.zeros((population, horizon), dtype=bool)
+        truncated = np.zeros((population, horizon), dtype=bool)
+        lengths = np.zeros(population, dtype=np.int64)
+        current = np.stack([self._env(p).reset(seed=int(seeds[p]))[0] for p in range(population)])
+        active = np.ones(population, dtype=bool)
+        layers = self.policy.split(params)
+        t = 0
+        while active.any():
+            # Finished members still get a (cheap) forward: slicing params would copy P x D floats.
+            action = self.policy(params, torch.as_tensor(current, dtype=torch.float32), layers).numpy()
+            for p in np.flatnonzero(active):
+                o, r, term, trunc, _ = self.envs[p].step(action[p])
+                obs[p, t], actions[p, t], next_obs[p, t], rewards[p, t] = current[p], action[p], o, r
+                terminated[p, t], truncated[p, t] = term, trunc
+                current[p] = o
+                lengths[p] = t + 1
+                if term or trunc:
+                    active[p] = False
+            t += 1
+        returns = rewards.sum(axis=1)
+        transitions = transitions_from_arrays(obs, actions, next_obs, rewards, terminated, truncated, lengths, returns)
+        return Generation(torch.as_tensor(returns), torch.as_tensor(lengths), transitions)

@@ -1,0 +1,26 @@
+"""The two ways a run stops with one line instead of a traceback.
+
+- :class:`ConfigError`: a configuration value is invalid, found before any work starts;
+- ``FloatingPointError`` raised by :func:`check_finite` (and by the TD3 and ES updates): NaN or
+  inf in a loss, an episode return or the ES mean; nothing is checkpointed after it.
+"""
+from __future__ import annotations
+
+import math
+
+import torch
+
+
+class ConfigError(ValueError):
+    """A configuration value is invalid; the message is one line naming the field and what is allowed."""
+
+
+def check_finite(name: str, value):
+    """Return ``value``; raise FloatingPointError if it (a number or a tensor) holds NaN or inf."""
+    if isinstance(value, torch.Tensor):
+        bad = int((~torch.isfinite(value)).sum())
+        if bad:
+            raise FloatingPointError(f"{name} has {bad} non-finite entr{'y' if bad == 1 else 'ies'}")
+    elif not math.isfinite(float(value)):
+        raise FloatingPointError(f"{name} is {value}")
+    return value

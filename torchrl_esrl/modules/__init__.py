@@ -1,0 +1,5 @@
+"""Networks: the paper's actor and critics, the flat-parameter bridge ES searches over, and the
+batched population actor."""
+from torchrl_esrl.modules.networks import PopulationActor, flat_parameters, load_flat_parameters, make_actor, make_critic
+
+__all__ = ["PopulationActor", "flat_parameters", "load_flat_parameters", "make_actor", "make_critic"]
