@@ -30,7 +30,8 @@ from tqdm.auto import tqdm  # noqa: E402
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # run from a checkout without installing
 
 from torchrl_esrl.algorithm.background_es import BackgroundES  # noqa: E402
-from torchrl_esrl.run.checkpoint import RunCheckpoint, RunProgress, TD3EnvState, make_deterministic, prepare_run  # noqa: E402
+from torchrl_esrl.collectors.td3_collector import TD3EnvState  # noqa: E402
+from torchrl_esrl.run.checkpoint import RunCheckpoint, RunProgress, make_deterministic, prepare_run  # noqa: E402
 from torchrl_esrl.errors import ConfigError  # noqa: E402
 from torchrl_esrl.run.factories import (  # noqa: E402
     make_actor_critic,
