@@ -1,9 +1,10 @@
-"""MultiBuffer ratio sampling vs one TorchRL replay buffer (issue 3, figure 3).
+"""MultiBuffer ratio sampling vs one TorchRL replay buffer.
 
   baseline    one ``TensorDictReplayBuffer`` (``LazyTensorStorage``, uniform) ``sample(256)`` from
               a full buffer of ``capacity`` HalfCheetah-shaped transitions
   multibuffer ``MultiBuffer.sample()``: 256 at 0.5:0.2:0.3 (128/51/77) from three full buffers
-              (the ``_gather`` path: one ``index_select`` per key and buffer into one batch)
+              (``ExactRatioSampler`` asks each buffer's ``RandomSampler`` for its count, then
+              ``ExactRatioStorage.get`` copies one ``index_select`` per key and buffer into one batch)
   naive       three ``TensorDictReplayBuffer.sample(n)`` calls + ``torch.cat`` (+ the source tag)
 
 Goal: multibuffer <= 1.2x baseline.
@@ -32,7 +33,7 @@ def run(capacity: int = 1_000_000, batch_size: int = 256, ratio=(0.5, 0.2, 0.3),
     multi = MultiBuffer(ratio=ratio, capacity=capacity, batch_size=batch_size)
     for name in multi.names:
         fill(multi, capacity, obs_dim, act_dim, name=name)
-    assert multi._can_gather()
+    assert multi.storage.fast_path()
     counts = multi.counts()
 
     def naive():
