@@ -11,6 +11,7 @@ object of each class and checks that every name is still there.
 from __future__ import annotations
 
 from tensordict import TensorDictBase
+from torchrl.data import TensorStorage
 
 PRIVATE_NAMES: dict[str, tuple[str, ...]] = {
     "torchrl.data.LazyTensorStorage": ("_storage",),
@@ -34,7 +35,7 @@ def tensor_storage_data(storage) -> TensorDictBase | None:
     ``sample`` (``benchmarks/buffer_sampling.py``, "naive"). No public accessor returns the
     storage's tensors themselves.
     """
-    if not storage.initialized:
+    if not isinstance(storage, TensorStorage) or not storage.initialized:
         return None
     data = storage._storage
     return data if isinstance(data, TensorDictBase) else None

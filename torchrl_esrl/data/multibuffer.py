@@ -251,6 +251,8 @@ class ExactRatioStorage(StorageEnsemble):
             parts = []
             for member, member_index, _ in groups:
                 part = self.members[member].get(member_index)
+                if isinstance(part, list):  # a ListStorage gives its items as a list
+                    part = torch.stack(part)
                 transform = self.member_transforms[member]
                 parts.append(transform(part) if transform is not None and len(transform) else part)
             batch = torch.cat(parts, 0)
