@@ -6,6 +6,9 @@
               (``ExactRatioSampler`` asks each buffer's ``RandomSampler`` for its count, then
               ``ExactRatioStorage.get`` copies one ``index_select`` per key and buffer into one batch)
   naive       three ``TensorDictReplayBuffer.sample(n)`` calls + ``torch.cat`` (+ the source tag)
+  torchrl_ensemble  TorchRL's stock ``ReplayBufferEnsemble(sample_from_all=True)`` over the same three
+              buffers, 255 items (85 each: it can only split evenly), stacked as [3, 85]: what the
+              MultiBuffer would cost built from TorchRL's ensemble as is (and without exact ratios)
 
 Goal: multibuffer <= 1.2x baseline.
 Usage: ``python -m benchmarks.buffer_sampling [--quick] [--out PATH]``.
@@ -22,6 +25,8 @@ if __package__ in (None, ""):
 from benchmarks.common import SHAPES, fill, interleaved, save_report  # noqa: E402  (sets OMP_WAIT_POLICY)
 
 import torch  # noqa: E402
+
+from torchrl.data import ReplayBufferEnsemble  # noqa: E402
 
 from torchrl_esrl.data.multibuffer import MultiBuffer, make_buffer  # noqa: E402
 
@@ -42,8 +47,12 @@ def run(capacity: int = 1_000_000, batch_size: int = 256, ratio=(0.5, 0.2, 0.3),
         batch.set("buffer", torch.repeat_interleave(torch.arange(3), torch.tensor(list(counts.values()))))
         return batch
 
+    stock = ReplayBufferEnsemble(*(multi.buffers[n] for n in multi.names), sample_from_all=True)
+    stock_batch = 3 * (batch_size // 3)
+
     timings = interleaved(
-        {"baseline": lambda: single.sample(batch_size), "multibuffer": multi.sample, "naive": naive},
+        {"baseline": lambda: single.sample(batch_size), "multibuffer": multi.sample, "naive": naive,
+         "torchrl_ensemble": lambda: stock.sample(stock_batch)},
         calls=calls, repeats=repeats,
     )
     base = timings["baseline"]["s_per_call"]
@@ -64,8 +73,9 @@ def main(argv=None) -> dict:
     capacity = args.capacity or (100_000 if args.quick else 1_000_000)
     report = run(capacity, repeats=args.repeats or (3 if args.quick else 7), calls=100 if args.quick else 300)
     for name, t in report["methods"].items():
-        print(f"{name:12s} {t['s_per_call'] * 1e6:8.1f} us  {t['ratio']:5.2f}x (best rounds {t['ratio_best']:5.2f}x)")
+        print(f"{name:16s} {t['s_per_call'] * 1e6:8.1f} us  {t['ratio']:5.2f}x (best rounds {t['ratio_best']:5.2f}x)")
     save_report(report, args.out)
+    print(f"load average {report['machine']['load_average']}")
     return report
 
 

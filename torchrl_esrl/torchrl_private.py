@@ -79,6 +79,8 @@ def soft_update_pairs(updater) -> tuple[list, list]:
     sources, targets = [], []
     for key, param in updater._sources.items():
         target = updater._targets.get(f"target_{key}")
+        if target.requires_grad:
+            raise RuntimeError("the target parameter is part of a graph.")
         if isinstance(param, TensorDictBase):  # the loss's stacked parameter TensorDicts
             for leaf in param.keys(True, True):
                 sources.append(param.get(leaf).data)

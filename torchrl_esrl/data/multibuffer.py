@@ -119,8 +119,7 @@ class ExactRatioSampler(SamplerEnsemble):
         return [r > 0 and size >= need for r, size in zip(self.ratio, sizes)]
 
     def _ready(self, sizes: Sequence[int]) -> bool:
-        need = max(self.min_size, 1)
-        shared = [size >= need for r, size in zip(self.ratio, sizes) if r > 0]
+        shared = [ready for r, ready in zip(self.ratio, self._ready_members(sizes)) if r > 0]
         return any(shared) if self.renormalize else all(shared)
 
     def _effective_ratio(self, sizes: Sequence[int]) -> tuple[float, ...]:
@@ -402,7 +401,8 @@ class MultiBuffer(ReplayBufferEnsemble):
         return dict(zip(self.names, self.sampler.counts(self.storage, batch_size)))
 
     def sample(self, batch_size: int | None = None, return_info: bool = False):
-        """A batch with exactly each buffer's share, tagged under ``source_key``.
+        """A batch with exactly each buffer's share, tagged under ``source_key``: the stored keys
+        (``keys`` and TorchRL's per-item ``"index"`` in its buffer) plus the tag.
 
         TorchRL's ``ReplayBuffer.sample`` steps, as public calls: the sampler picks indices, the
         storage gathers them, the buffer's transform (if any) runs. ``ReplayBufferEnsemble``'s own
