@@ -1,10 +1,14 @@
-"""MultiBuffer ratio sampling vs one TorchRL replay buffer (issue 3, figure 3).
+"""MultiBuffer ratio sampling vs one TorchRL replay buffer.
 
   baseline    one ``TensorDictReplayBuffer`` (``LazyTensorStorage``, uniform) ``sample(256)`` from
               a full buffer of ``capacity`` HalfCheetah-shaped transitions
   multibuffer ``MultiBuffer.sample()``: 256 at 0.5:0.2:0.3 (128/51/77) from three full buffers
-              (the ``_gather`` path: one ``index_select`` per key and buffer into one batch)
+              (``ExactRatioSampler`` asks each buffer's ``RandomSampler`` for its count, then
+              ``ExactRatioStorage.get`` copies one ``index_select`` per key and buffer into one batch)
   naive       three ``TensorDictReplayBuffer.sample(n)`` calls + ``torch.cat`` (+ the source tag)
+  torchrl_ensemble  TorchRL's stock ``ReplayBufferEnsemble(sample_from_all=True)`` over the same three
+              buffers, 255 items (85 each: it can only split evenly), stacked as [3, 85]: what the
+              MultiBuffer would cost built from TorchRL's ensemble as is (and without exact ratios)
 
 Goal: multibuffer <= 1.2x baseline.
 Usage: ``python -m benchmarks.buffer_sampling [--quick] [--out PATH]``.
@@ -22,6 +26,8 @@ from benchmarks.common import SHAPES, fill, interleaved, save_report  # noqa: E4
 
 import torch  # noqa: E402
 
+from torchrl.data import ReplayBufferEnsemble  # noqa: E402
+
 from torchrl_esrl.data.multibuffer import MultiBuffer, make_buffer  # noqa: E402
 
 
@@ -32,7 +38,7 @@ def run(capacity: int = 1_000_000, batch_size: int = 256, ratio=(0.5, 0.2, 0.3),
     multi = MultiBuffer(ratio=ratio, capacity=capacity, batch_size=batch_size)
     for name in multi.names:
         fill(multi, capacity, obs_dim, act_dim, name=name)
-    assert multi._can_gather()
+    assert multi.storage.fast_path()
     counts = multi.counts()
 
     def naive():
@@ -41,8 +47,12 @@ def run(capacity: int = 1_000_000, batch_size: int = 256, ratio=(0.5, 0.2, 0.3),
         batch.set("buffer", torch.repeat_interleave(torch.arange(3), torch.tensor(list(counts.values()))))
         return batch
 
+    stock = ReplayBufferEnsemble(*(multi.buffers[n] for n in multi.names), sample_from_all=True)
+    stock_batch = 3 * (batch_size // 3)
+
     timings = interleaved(
-        {"baseline": lambda: single.sample(batch_size), "multibuffer": multi.sample, "naive": naive},
+        {"baseline": lambda: single.sample(batch_size), "multibuffer": multi.sample, "naive": naive,
+         "torchrl_ensemble": lambda: stock.sample(stock_batch)},
         calls=calls, repeats=repeats,
     )
     base = timings["baseline"]["s_per_call"]
@@ -63,8 +73,9 @@ def main(argv=None) -> dict:
     capacity = args.capacity or (100_000 if args.quick else 1_000_000)
     report = run(capacity, repeats=args.repeats or (3 if args.quick else 7), calls=100 if args.quick else 300)
     for name, t in report["methods"].items():
-        print(f"{name:12s} {t['s_per_call'] * 1e6:8.1f} us  {t['ratio']:5.2f}x (best rounds {t['ratio_best']:5.2f}x)")
+        print(f"{name:16s} {t['s_per_call'] * 1e6:8.1f} us  {t['ratio']:5.2f}x (best rounds {t['ratio_best']:5.2f}x)")
     save_report(report, args.out)
+    print(f"load average {report['machine']['load_average']}")
     return report
 
 

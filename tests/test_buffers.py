@@ -167,3 +167,109 @@ def test_gather_cache_follows_load_state_dict():
     a.load_state_dict(b.state_dict())
     assert (a.sample()["observation"] == 2).all()
     assert a.sample()["buffer"].tolist() == [0] * 16 + [1] * 6 + [2] * 10
+
+
+# ------------------------------------------------------------- a TorchRL replay buffer
+def test_multibuffer_is_a_torchrl_replay_buffer_ensemble():
+    from torchrl.data import ReplayBuffer, ReplayBufferEnsemble
+    from torchrl.data.replay_buffers import SamplerEnsemble, StorageEnsemble
+
+    buffer = filled(sizes=(10, 20, 30))
+    assert isinstance(buffer, ReplayBuffer) and isinstance(buffer, ReplayBufferEnsemble)
+    assert isinstance(buffer.sampler, SamplerEnsemble) and isinstance(buffer.storage, StorageEnsemble)
+    # TorchRL's integer indexing reaches the same three TensorDictReplayBuffers as the names
+    assert [buffer[i] for i in range(3)] == [buffer.good, buffer.bad, buffer.noisy]
+    assert all(isinstance(buffer[name], TensorDictReplayBuffer) for name in buffer.names)
+    assert len(buffer) == 60 and buffer.write_count == 60
+    assert buffer.storage.fast_path()
+
+
+def test_fast_gather_equals_each_buffers_own_storage_get():
+    """The fast path (index_select from the storages' tensors) returns what each buffer's public
+    ``storage.get`` returns for the same indices, tags included, in any order of buffer ids."""
+    buffer = MultiBuffer(capacity=100)
+    generator = torch.Generator().manual_seed(0)
+    for name, size in zip(buffer.names, (40, 70, 100)):
+        data = transitions(size)
+        data["observation"] = torch.randn(size, 3, generator=generator)
+        buffer.extend(data, name)
+    ids = torch.tensor([2, 0, 0, 1, 2, 0, 1, 1, 2])
+    local = torch.tensor([99, 3, 39, 0, 5, 7, 69, 2, 0])
+    index = TensorDict({"buffer_ids": ids, "index": local}, batch_size=[len(ids)])
+    assert buffer.storage.fast_path()
+    batch = buffer.storage.get(index)
+    for position, (member, item) in enumerate(zip(ids.tolist(), local.tolist())):
+        expected = buffer[member].storage.get(torch.tensor([item]))[0]
+        got = batch[position]
+        assert got["buffer"] == member
+        for key in expected.keys(include_nested=True, leaves_only=True):
+            assert torch.equal(got[key], expected[key]), key
+
+
+def test_members_get_path_when_storages_are_not_tensor_storages():
+    """Buffers over TorchRL ``ListStorage`` (no tensors to gather from) take each buffer's
+    ``get`` and still give exact counts and tags."""
+    from torchrl.data import ListStorage
+
+    buffers = {name: TensorDictReplayBuffer(storage=ListStorage(100)) for name in ("good", "bad", "noisy")}
+    buffer = MultiBuffer(ratio=(0.5, 0.2, 0.3), buffers=buffers, batch_size=50)
+    for index, name in enumerate(buffer.names):
+        buffer.extend(transitions(20, fill=float(index)), name)
+    assert not buffer.storage.fast_path()
+    batch = buffer.sample()
+    assert torch.bincount(batch["buffer"], minlength=3).tolist() == ratio_counts(50, (0.5, 0.2, 0.3))
+    assert torch.equal(batch["observation"][:, 0], batch["buffer"].float())
+
+
+def test_torchrl_collector_and_trainer_drive_the_multibuffer():
+    """TorchRL's Collector writes into the MultiBuffer (its data lands in ``noisy``, the default),
+    TorchRL's Trainer samples it through ``ReplayBufferTrainer`` and TorchRL's DDPGLoss learns."""
+    from torchrl.collectors import Collector
+    from torchrl.modules import MLP, ValueOperator
+    from torchrl.objectives import DDPGLoss
+    from torchrl.trainers import DefaultOptimizationStepper, ReplayBufferTrainer, Trainer
+
+    from torchrl_esrl.envs import make_env
+    from torchrl_esrl.modules.networks import make_actor
+
+    torch.manual_seed(0)
+    buffer = MultiBuffer(ratio=(0.5, 0.2, 0.3), capacity=5000, batch_size=64, min_size=100)
+    env = make_env("pendulum", seed=0)
+    collector = Collector(env, None, frames_per_batch=200, total_frames=400, replay_buffer=buffer)
+    for _ in collector:  # with a replay buffer the collector yields nothing and writes itself
+        pass
+    collector.shutdown()
+    assert buffer.sizes() == {"good": 0, "bad": 0, "noisy": 400}
+    assert buffer.write_count == 400
+    # good and bad from elsewhere (the ES side in ES-TD3Buffers): tagged batches route themselves
+    tagged = buffer.noisy.sample(300).select(*buffer.keys)
+    tagged["buffer"] = torch.tensor([0] * 150 + [1] * 150)
+    buffer.extend(tagged)
+    assert buffer.sizes() == {"good": 150, "bad": 150, "noisy": 400} and buffer.ready()
+
+    actor = make_actor(3, env.action_spec, hidden=(64, 64))
+    value = ValueOperator(MLP(in_features=4, out_features=1, num_cells=[64, 64]), in_keys=["observation", "action"])
+    loss = DDPGLoss(actor, value, delay_actor=False, delay_value=False)
+    loss.make_value_estimator(gamma=0.9)
+    held_out = buffer.sample(256)
+    with torch.no_grad():
+        before = loss(held_out)["loss_value"].item()
+    steps = 150
+    collector = Collector(make_env("pendulum", seed=1), None, frames_per_batch=100, total_frames=200)
+    trainer = Trainer(
+        collector=collector, total_frames=200, frame_skip=1, optim_steps_per_batch=steps, loss_module=loss,
+        optimizer=torch.optim.Adam(loss.parameters(), lr=1e-3), optimization_stepper=DefaultOptimizationStepper(),
+        progress_bar=False, clip_grad_norm=False,
+    )
+    sampled = []
+    hook = ReplayBufferTrainer(buffer, batch_size=64, flatten_tensordicts=True)
+    trainer.register_op("batch_process", hook.extend)  # as ReplayBufferTrainer.register, without priorities
+    trainer.register_op("process_optim_batch", hook.sample)
+    trainer.register_op("process_optim_batch", lambda batch: sampled.append(torch.bincount(batch["buffer"], minlength=3).tolist()) or batch)
+    trainer.train()
+    collector.shutdown()
+    assert buffer.sizes()["noisy"] == 600  # the trainer's batches went to noisy too
+    assert len(sampled) == 2 * steps and all(counts == [32, 13, 19] for counts in sampled)
+    with torch.no_grad():
+        after = loss(held_out)["loss_value"].item()
+    assert after < 0.5 * before, (before, after)

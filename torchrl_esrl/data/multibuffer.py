@@ -1,14 +1,17 @@
-"""The MultiBuffer of ES-TD3Buffers (paper, Section 4.1 "Multi-Buffers" and Algorithm 1).
+"""The MultiBuffer of ES-TD3Buffers (paper, Section 3.1 "Multi-Buffers", and Algorithm 1).
 
 Three named TorchRL :class:`~torchrl.data.TensorDictReplayBuffer` s, ``good``, ``bad`` and
-``noisy``, sampled at a fixed ratio (a:b:c). Every batch holds *exactly* each buffer's share
-(largest-remainder rounding), and every item is tagged with the index of the buffer it came
-from under ``source_key``. TorchRL's ``ReplayBufferEnsemble`` honours a ratio only in
-expectation, hence this class.
+``noisy``, composed into one TorchRL :class:`~torchrl.data.ReplayBufferEnsemble` (so a
+MultiBuffer *is* a :class:`~torchrl.data.ReplayBuffer`: a TorchRL ``Collector`` or ``Trainer``
+can write to it and a TorchRL loss learn from its batches). Every batch holds *exactly* each
+buffer's share of a fixed ratio (a:b:c), by largest-remainder rounding, and every item is tagged
+with the index of the buffer it came from under ``source_key``.
 
-The MultiBuffer is a drop-in replay buffer for other TorchRL code: ``extend``, ``sample``,
-``len``, ``state_dict``/``load_state_dict`` and ``dumps``/``loads`` behave as on a
-``TensorDictReplayBuffer``.
+TorchRL's own :class:`~torchrl.data.replay_buffers.SamplerEnsemble` takes equal sub-batches or
+draws buffers at random with weights ``p`` (a ratio held only in expectation). The custom parts
+are :class:`ExactRatioSampler` (a ``SamplerEnsemble`` asking each member's own sampler for its
+exact count) and :class:`ExactRatioStorage` (a ``StorageEnsemble`` that gathers those items
+into one flat batch).
 """
 from __future__ import annotations
 
@@ -18,10 +21,12 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 
 import torch
-from tensordict import TensorDict, TensorDictBase
-from torchrl.data import LazyTensorStorage, RandomSampler, TensorDictReplayBuffer
+from tensordict import LazyStackedTensorDict, TensorDict, TensorDictBase
+from torchrl.data import LazyTensorStorage, ReplayBufferEnsemble, TensorDictReplayBuffer
+from torchrl.data.replay_buffers import SamplerEnsemble, StorageEnsemble
 
 from torchrl_esrl.errors import ConfigError
+from torchrl_esrl.torchrl_private import tensor_storage_data
 
 BUFFER_NAMES = ("good", "bad", "noisy")
 
@@ -75,8 +80,199 @@ def make_buffer(capacity: int, device: str | torch.device = "cpu") -> TensorDict
     return TensorDictReplayBuffer(storage=LazyTensorStorage(int(capacity), device=device))
 
 
-class MultiBuffer:
-    """Three TorchRL replay buffers sampled at an exact ratio.
+def _members(storage: StorageEnsemble) -> tuple:
+    """The member storages of a ``StorageEnsemble`` (public indexing; cached by ours)."""
+    members = getattr(storage, "members", None)
+    return members if members is not None else tuple(storage[i] for i in range(len(storage)))
+
+
+class ExactRatioSampler(SamplerEnsemble):
+    """A ``SamplerEnsemble`` whose batches hold exactly each member's share (paper, Section 3.1).
+
+    Each member's own sampler (``RandomSampler`` for :func:`make_buffer`'s buffers) draws
+    ``ratio_counts(batch_size, ratio)[i]`` indices from its storage. The readiness rule lives
+    here too: a member with a non-zero share is *ready* once it holds ``min_size`` (K) items;
+    sampling needs all of them ready, or, with ``renormalize``, any one, the ratio then being
+    renormalised over the ready ones.
+
+    ``sample`` returns ``(index, info)`` with ``index`` a TensorDict of batch ``[batch_size]``:
+    ``"buffer_ids"`` (each item's member, in member order) and ``"index"`` (its index in that
+    member's storage), the layout :meth:`ExactRatioStorage.get` reads. Extra info of the member
+    samplers (priority weights...) is not returned.
+    """
+
+    def __init__(self, *samplers, ratio: Sequence[float], min_size: int = 0, renormalize: bool = False):
+        super().__init__(*samplers, sample_from_all=True)
+        if len(ratio) != len(samplers):
+            raise ValueError(f"one share per sampler: {len(samplers)} samplers, ratio {list(ratio)}")
+        self.members = tuple(samplers)
+        self.ratio = tuple(float(r) for r in ratio)
+        self.min_size = int(min_size)
+        self.renormalize = bool(renormalize)
+        self._counts_cache: dict = {}
+        self._ids_cache: dict = {}
+
+    # Each rule below reads the members' sizes once (``len`` of a TorchRL storage is a
+    # compile-guarded call, ~5 us each, and sampling is on the hot path of every TD3 update).
+    def _ready_members(self, sizes: Sequence[int]) -> list[bool]:
+        need = max(self.min_size, 1)
+        return [r > 0 and size >= need for r, size in zip(self.ratio, sizes)]
+
+    def _ready(self, sizes: Sequence[int]) -> bool:
+        shared = [ready for r, ready in zip(self.ratio, self._ready_members(sizes)) if r > 0]
+        return any(shared) if self.renormalize else all(shared)
+
+    def _effective_ratio(self, sizes: Sequence[int]) -> tuple[float, ...]:
+        if not self.renormalize:
+            return self.ratio
+        return tuple(r if ready else 0.0 for r, ready in zip(self.ratio, self._ready_members(sizes)))
+
+    def _counts(self, sizes: Sequence[int], batch_size: int) -> tuple[int, ...]:
+        """``ratio_counts`` of the effective ratio, memoised (it sorts in Python, ~10 us a call)."""
+        key = (int(batch_size), self._effective_ratio(sizes))
+        counts = self._counts_cache.get(key)
+        if counts is None:
+            counts = self._counts_cache[key] = tuple(ratio_counts(*key))
+        return counts
+
+    @staticmethod
+    def sizes(storage: StorageEnsemble) -> list[int]:
+        return [len(member) for member in _members(storage)]
+
+    def ready_members(self, storage: StorageEnsemble) -> list[bool]:
+        """Per member: has a non-zero share and holds at least ``min_size`` (and one) items."""
+        return self._ready_members(self.sizes(storage))
+
+    def ready(self, storage: StorageEnsemble) -> bool:
+        """Every member with a share is ready (any one, if renormalising)."""
+        return self._ready(self.sizes(storage))
+
+    def can_sample(self, storage: StorageEnsemble, batch_size: int | None = None) -> bool:
+        return self.ready(storage)
+
+    def effective_ratio(self, storage: StorageEnsemble) -> tuple[float, ...]:
+        """The configured ratio; restricted to the ready members when renormalising."""
+        return self._effective_ratio(self.sizes(storage))
+
+    def counts(self, storage: StorageEnsemble, batch_size: int) -> tuple[int, ...]:
+        """Items of each member in a batch of ``batch_size``."""
+        return self._counts(self.sizes(storage), batch_size)
+
+    def sample(self, storage: StorageEnsemble, batch_size: int) -> tuple[TensorDict, dict]:
+        members = _members(storage)
+        sizes = [len(member) for member in members]
+        if not self._ready(sizes):
+            raise RuntimeError(f"not ready to sample: sizes {sizes}, ratio {list(self.ratio)}, min_size {self.min_size}, renormalize {self.renormalize}")
+        counts = self._counts(sizes, batch_size)
+        parts = [sampler.sample(member, count)[0] for sampler, member, count in zip(self.members, members, counts) if count]
+        index = torch.cat(parts) if len(parts) > 1 else parts[0]
+        ids = self._ids_cache.get(counts)
+        if ids is None:
+            ids = self._ids_cache[counts] = torch.repeat_interleave(torch.arange(len(counts)), torch.tensor(counts)).to(index.device)
+        return TensorDict({"buffer_ids": ids.clone(), "index": index}, batch_size=[int(batch_size)]), {}
+
+
+def _nest(flat: Mapping) -> dict:
+    """``{("next", "reward"): t}`` -> ``{"next": {"reward": t}}`` (one TensorDict built from a
+    nested dict costs about 2/3 of setting its keys one by one)."""
+    nested: dict = {}
+    for key, value in flat.items():
+        path = key if isinstance(key, tuple) else (key,)
+        node = nested
+        for part in path[:-1]:
+            node = node.setdefault(part, {})
+        node[path[-1]] = value
+    return nested
+
+
+class ExactRatioStorage(StorageEnsemble):
+    """A ``StorageEnsemble`` whose :meth:`get` returns one flat batch, in the order of the index.
+
+    ``StorageEnsemble.get`` returns a list of ``(buffer_id, data)``, one per sub-batch, for
+    ``ReplayBufferEnsemble`` to stack; the MultiBuffer's sub-batches differ in size, and a TorchRL
+    loss wants one flat batch. Here each item's member is written under ``source_key`` instead.
+
+    Fast path: when every member is a tensor storage without transform holding the same keys,
+    the items are copied straight from the storages' tensors into one preallocated batch (one
+    ``index_select`` per key and member). Otherwise each member's public ``get`` is called and
+    the parts are concatenated; both give the same batch (``tests/test_buffers.py``).
+    """
+
+    def __init__(self, *storages, transforms: list | None = None, source_key: str | None = None):
+        super().__init__(*storages, transforms=transforms)
+        self.members = tuple(storages)
+        self.member_transforms = tuple(transforms) if transforms is not None else (None,) * len(storages)
+        self.source_key = source_key
+        self._leaves_cache: tuple | None = None
+
+    def fast_path(self) -> bool:
+        """Whether :meth:`get` copies straight from the storages' tensors (else: members' ``get``)."""
+        return self._leaves() is not None
+
+    def _leaves(self) -> tuple | None:
+        """``(keys, per member: its storage's tensor of each key, None for an empty member)``, or
+        None when the fast path does not apply. Cached while every member keeps its TensorDict."""
+        if any(t is not None and len(t) for t in self.member_transforms):
+            return None
+        datas = tuple(tensor_storage_data(m) for m in self.members)
+        cached = self._leaves_cache
+        if cached is not None and all(a is b for a, b in zip(cached[0], datas)):
+            return cached[1]
+        written = [d for d in datas if d is not None]
+        if not written or any(d is None and len(m) for d, m in zip(datas, self.members)):
+            return None
+        keys = tuple(written[0].keys(include_nested=True, leaves_only=True))
+        reference = [written[0].get(k) for k in keys]
+        leaves = []
+        for data in datas:
+            if data is None:
+                leaves.append(None)
+                continue
+            if set(data.keys(include_nested=True, leaves_only=True)) != set(keys):
+                return None
+            tensors = tuple(data.get(k) for k in keys)
+            if any(t.dtype != r.dtype or t.shape[1:] != r.shape[1:] or t.device != r.device for t, r in zip(tensors, reference)):
+                return None
+            leaves.append(tensors)
+        self._leaves_cache = (datas, (keys, leaves))
+        return self._leaves_cache[1]
+
+    def get(self, item: TensorDictBase) -> TensorDictBase:
+        """The items ``item["index"]`` of members ``item["buffer_ids"]`` as one TensorDict."""
+        buffer_ids, index = item.get("buffer_ids"), item.get("index")
+        members, counts = torch.unique_consecutive(buffer_ids, return_counts=True)
+        groups, start = [], 0  # (member, its indices, position in the batch): runs of one member
+        for member, count in zip(members.tolist(), counts.tolist()):
+            groups.append((member, index[start : start + count], start))
+            start += count
+        leaves = self._leaves()
+        if leaves is None:
+            parts = []
+            for member, member_index, _ in groups:
+                part = self.members[member].get(member_index)
+                if isinstance(part, list):  # a ListStorage gives its items as a list
+                    part = torch.stack(part)
+                transform = self.member_transforms[member]
+                parts.append(transform(part) if transform is not None and len(transform) else part)
+            batch = torch.cat(parts, 0)
+            if self.source_key is not None:
+                batch.set(self.source_key, buffer_ids)
+            return batch
+        keys, tensors = leaves
+        total = buffer_ids.numel()
+        outs = {}
+        for position, key in enumerate(keys):
+            reference = tensors[groups[0][0]][position]
+            out = outs[key] = torch.empty((total, *reference.shape[1:]), dtype=reference.dtype, device=reference.device)
+            for member, member_index, begin in groups:
+                torch.index_select(tensors[member][position], 0, member_index, out=out[begin : begin + member_index.numel()])
+        if self.source_key is not None:
+            outs[self.source_key] = buffer_ids
+        return TensorDict(_nest(outs), batch_size=[total])
+
+
+class MultiBuffer(ReplayBufferEnsemble):
+    """Three TorchRL replay buffers sampled at an exact ratio, as one TorchRL replay buffer.
 
     Args:
         ratio: shares of (good, bad, noisy) in every batch; normalised internally.
@@ -88,8 +284,10 @@ class MultiBuffer:
             renormalised over the ready buffers.
         buffers: existing buffers by name (built with :func:`make_buffer` otherwise).
         keys: keys stored from each transition (None keeps all keys as given).
-        default: buffer that :meth:`extend` writes to when it is given no name.
+        default: buffer that :meth:`extend` writes to when it is given no name and no tags
+            (what a TorchRL ``Collector(..., replay_buffer=mb)`` writes lands there).
         source_key: key of the per-item buffer index in sampled batches.
+        device: device of the buffers' storages (when built here).
     """
 
     def __init__(
@@ -106,26 +304,42 @@ class MultiBuffer:
         source_key: str = "buffer",
         device: str | torch.device = "cpu",
     ):
-        self.names = tuple(names)
-        self.ratio = validate_ratio(ratio) if len(self.names) == 3 else tuple(float(r) for r in ratio)
+        names = tuple(names)
+        ratio = validate_ratio(ratio) if len(names) == 3 else tuple(float(r) for r in ratio)
         if buffers is None:
-            caps = capacity if isinstance(capacity, Mapping) else {n: capacity for n in self.names}
-            buffers = {n: make_buffer(caps[n], device) for n in self.names}
-        if tuple(buffers) != self.names:
-            raise ValueError(f"buffers must be named {self.names}, got {tuple(buffers)}")
+            caps = capacity if isinstance(capacity, Mapping) else {n: capacity for n in names}
+            buffers = {n: make_buffer(caps[n], device) for n in names}
+        if tuple(buffers) != names:
+            raise ValueError(f"buffers must be named {names}, got {tuple(buffers)}")
+        if default not in names:
+            raise ValueError(f"default must be one of {names}, got {default!r}")
+        members = tuple(buffers.values())
+        stack = LazyStackedTensorDict.maybe_dense_stack  # what ReplayBufferEnsemble's indexing collates with
+        super().__init__(*members, batch_size=int(batch_size), collate_fn=stack)
+        # Swap in the exact-ratio sampler and the flat-batch storage ensemble over the same members.
+        self.set_sampler(ExactRatioSampler(*(b.sampler for b in members), ratio=ratio, min_size=min_size, renormalize=renormalize))
+        storage = ExactRatioStorage(*(b.storage for b in members), transforms=[b.transform for b in members], source_key=source_key)
+        self.set_storage(storage, collate_fn=stack)
+        storage.attach(self)
+        self.set_writer(self.writer)  # registers the writers with the new storage ensemble
+        self.names = names
         self.buffers = dict(buffers)
-        self.batch_size = int(batch_size)
-        self.min_size = int(min_size)
-        self.renormalize = bool(renormalize)
         self.keys = None if keys is None else tuple(keys)
-        if default not in self.names:
-            raise ValueError(f"default must be one of {self.names}, got {default!r}")
         self.default = default
         self.source_key = source_key
+        self.device = torch.device(device)
+
+    # ------------------------------------------------------------ settings
+    ratio = property(lambda self: self.sampler.ratio, lambda self, value: setattr(self.sampler, "ratio", tuple(float(r) for r in value)))
+    min_size = property(lambda self: self.sampler.min_size, lambda self, value: setattr(self.sampler, "min_size", int(value)))
+    renormalize = property(lambda self: self.sampler.renormalize, lambda self, value: setattr(self.sampler, "renormalize", bool(value)))
 
     # ----------------------------------------------------------------- access
-    def __getitem__(self, name: str) -> TensorDictReplayBuffer:
-        return self.buffers[name]
+    def __getitem__(self, name):
+        """A named buffer (``mb["good"]``); other indices as on ``ReplayBufferEnsemble``."""
+        if isinstance(name, str):
+            return self.buffers[name]
+        return super().__getitem__(name)
 
     def __getattr__(self, name: str) -> TensorDictReplayBuffer:
         buffers = self.__dict__.get("buffers", {})
@@ -144,11 +358,15 @@ class MultiBuffer:
         return f"MultiBuffer(ratio=({shares}), sizes={self.sizes()}, min_size={self.min_size}, renormalize={self.renormalize})"
 
     # ------------------------------------------------------------------ write
-    def extend(self, data: TensorDictBase, name: str | None = None) -> None:
+    def extend(self, data: TensorDictBase, name: str | None = None, **kwargs):
         """Write transitions to buffer ``name``; without one, route by ``data[source_key]`` if
-        present (items tagged as :meth:`sample` tags them), else write to ``default``."""
+        present (items tagged as :meth:`sample` tags them), else write to ``default``.
+
+        Routing is done here rather than by ``ReplayBufferEnsemble(routing_key=...)``: TorchRL's
+        routed write stores the routing key with the data, while each buffer keeps only ``keys``.
+        """
         if data.batch_size.numel() == 0:  # TensorDict.numel() is 1 for an empty batch
-            return
+            return None
         if name is None and self.source_key in data.keys():
             source = data.get(self.source_key).reshape(-1)
             flat = data.reshape(-1)
@@ -156,121 +374,49 @@ class MultiBuffer:
                 mask = source == index
                 if mask.any():
                     self.extend(flat[mask], buffer_name)
-            return
+            return None
         name = self.default if name is None else name
         if self.keys is not None:
             data = data.select(*self.keys)
-        self.buffers[name].extend(data.reshape(-1))
+        return self.buffers[name].extend(data.reshape(-1), **kwargs)
 
     add = extend
 
     # ------------------------------------------------------------------- read
     def ready_names(self) -> list[str]:
         """Buffers with a non-zero share that hold at least ``min_size`` (and one) items."""
-        need = max(self.min_size, 1)
-        return [n for n, r in zip(self.names, self.ratio) if r > 0 and len(self.buffers[n]) >= need]
+        return [n for n, ready in zip(self.names, self.sampler.ready_members(self.storage)) if ready]
 
     def ready(self) -> bool:
         """Paper's rule: every buffer with a non-zero share holds K items (any one, if renormalising)."""
-        need = max(self.min_size, 1)
-        shared = [len(b) >= need for b, r in zip(self.buffers.values(), self.ratio) if r > 0]
-        return any(shared) if self.renormalize else all(shared)
+        return self.sampler.ready(self.storage)
 
     def effective_ratio(self) -> tuple[float, ...]:
         """The ratio actually sampled: the configured one, restricted to ready buffers if renormalising."""
-        if not self.renormalize:
-            return self.ratio
-        ready = set(self.ready_names())
-        return tuple(r if n in ready else 0.0 for n, r in zip(self.names, self.ratio))
+        return self.sampler.effective_ratio(self.storage)
 
     def counts(self, batch_size: int | None = None) -> dict[str, int]:
         """How many items of each buffer a batch of ``batch_size`` holds."""
         batch_size = self.batch_size if batch_size is None else int(batch_size)
-        return dict(zip(self.names, self._counts(batch_size, self.effective_ratio())))
+        return dict(zip(self.names, self.sampler.counts(self.storage, batch_size)))
 
-    def _counts(self, batch_size: int, ratio: tuple[float, ...]) -> tuple[int, ...]:
-        """``ratio_counts`` memoised (it sorts in Python: ~10 us a call, paid on every sample)."""
-        key = (batch_size, ratio)
-        cache = self.__dict__.setdefault("_counts_cache", {})
-        if key not in cache:
-            cache[key] = tuple(ratio_counts(batch_size, ratio))
-        return cache[key]
+    def sample(self, batch_size: int | None = None, return_info: bool = False):
+        """A batch with exactly each buffer's share, tagged under ``source_key``: the stored keys
+        (``keys`` and TorchRL's per-item ``"index"`` in its buffer) plus the tag.
 
-    def sample(self, batch_size: int | None = None) -> TensorDict:
-        """A batch with exactly each buffer's share, tagged under ``source_key``."""
-        if not self.ready():
-            raise RuntimeError(f"MultiBuffer is not ready to sample: {self!r}")
+        TorchRL's ``ReplayBuffer.sample`` steps, as public calls: the sampler picks indices, the
+        storage gathers them, the buffer's transform (if any) runs. ``ReplayBufferEnsemble``'s own
+        step would stack equal sub-batches; here the storage returns one flat batch.
+        """
         batch_size = self.batch_size if batch_size is None else int(batch_size)
-        counts = self._counts(batch_size, self.effective_ratio())
-        leaves = self._gather_leaves()
-        if leaves is not None:
-            return self._gather(counts, leaves)
-        parts, sources = [], []
-        for index, (name, count) in enumerate(zip(self.names, counts)):
-            if count == 0:
-                continue
-            part = self.buffers[name].sample(count)
-            if self.keys is not None:
-                part = part.select(*self.keys)
-            parts.append(part)
-            sources.append(torch.full((count,), index, dtype=torch.long))
-        batch = torch.cat(parts, 0)
-        batch.set(self.source_key, torch.cat(sources))
-        return batch
-
-    def _can_gather(self) -> bool:
-        """True when every buffer is a plain uniform TorchRL buffer over a tensor storage."""
-        return self.keys is not None and all(
-            isinstance(b._storage, LazyTensorStorage)
-            and type(b._sampler) is RandomSampler
-            and len(b._transform) == 0
-            and (len(b) == 0 or b._storage.initialized)
-            for b in self.buffers.values()
-        )
-
-    def _gather_leaves(self) -> list[tuple] | None:
-        """Per buffer, the storage's tensor of every key (None: use the ``sample()`` path).
-
-        Checking ``_can_gather`` and looking the nested keys up in three storages cost more than
-        the gather itself (~100 us of Python a batch, measured), so both are cached while every
-        buffer keeps the same storage TensorDict, sampler and transform count."""
-        state = tuple((b._storage, getattr(b._storage, "_storage", None), b._sampler, len(b._transform)) for b in self.buffers.values())
-        cached = self.__dict__.get("_leaves_cache")
-        if cached is not None and len(cached[0]) == len(state) and all(
-            x is y for old, new in zip(cached[0], state) for x, y in zip(old[:3], new[:3])
-        ) and all(old[3] == new[3] for old, new in zip(cached[0], state)):
-            return cached[1]
-        if not self._can_gather():
-            return None
-        if any(s[1] is None for s in state):  # a storage not written yet
-            return [None if s[1] is None else tuple(s[1].get(k) for k in self.keys) for s in state]
-        leaves = [tuple(s[1].get(k) for k in self.keys) for s in state]
-        self.__dict__["_leaves_cache"] = (state, leaves)
-        return leaves
-
-    def _gather(self, counts: Sequence[int], leaves: list[tuple]) -> TensorDict:
-        """Uniform sampling with replacement, as TorchRL's ``RandomSampler``, written by hand:
-        one ``index_select`` per key straight from each buffer's storage into a preallocated
-        batch. Three ``sample()`` calls and a ``torch.cat`` measured ~3x one buffer's sample;
-        this path measures about the same as one (benchmarks/buffer_sampling.py)."""
-        total = sum(counts)
-        picks = []  # (storage tensors, indices, start)
-        start = 0
-        for buffer, count, tensors in zip(self.buffers.values(), counts, leaves):
-            if count:
-                picks.append((tensors, torch.randint(len(buffer), (count,)), start))
-                start += count
-        batch = TensorDict(batch_size=[total])
-        for position, key in enumerate(self.keys):
-            reference = picks[0][0][position]
-            out = torch.empty((total, *reference.shape[1:]), dtype=reference.dtype, device=reference.device)
-            for tensors, index, begin in picks:
-                torch.index_select(tensors[position], 0, index, out=out[begin : begin + index.numel()])
-            batch.set(key, out)
-        sources = self.__dict__.setdefault("_sources_cache", {})
-        if counts not in sources:
-            sources[counts] = torch.repeat_interleave(torch.arange(len(self.names)), torch.tensor(counts))
-        batch.set(self.source_key, sources[counts].clone())
+        index, info = self.sampler.sample(self.storage, batch_size)  # raises if not ready()
+        batch = self.storage.get(index)  # tags each item under source_key
+        transform = self.transform
+        if transform is not None and len(transform):
+            batch = transform(batch)
+        if return_info:
+            info["index"] = index
+            return batch, info
         return batch
 
     # ------------------------------------------------------------ persistence
@@ -286,17 +432,19 @@ class MultiBuffer:
         self.ratio = tuple(state["ratio"])
         self.min_size = int(state["min_size"])
         self.renormalize = bool(state["renormalize"])
-        self.__dict__.pop("_leaves_cache", None)  # storages may hold new tensors now
         for name, buffer_state in state["buffers"].items():
             self.buffers[name].load_state_dict(buffer_state)
 
     def dumps(self, path: str | Path) -> None:
-        """Write every buffer with TorchRL's own ``dumps`` into ``path/<name>``, plus ``multibuffer.json``."""
+        """Write every non-empty buffer with TorchRL's own ``dumps`` into ``path/<name>``, plus
+        ``multibuffer.json`` (settings and the names of the empty buffers, which TorchRL cannot dump)."""
         path = Path(path)
         path.mkdir(parents=True, exist_ok=True)
+        empty = [name for name, buffer in self.buffers.items() if len(buffer) == 0]
         for name, buffer in self.buffers.items():
-            buffer.dumps(path / name)
-        meta = {"names": list(self.names), "ratio": list(self.ratio), "min_size": self.min_size, "renormalize": self.renormalize}
+            if name not in empty:
+                buffer.dumps(path / name)
+        meta = {"names": list(self.names), "ratio": list(self.ratio), "min_size": self.min_size, "renormalize": self.renormalize, "empty": empty}
         (path / "multibuffer.json").write_text(json.dumps(meta, indent=2))
 
     def loads(self, path: str | Path) -> MultiBuffer:
@@ -305,7 +453,9 @@ class MultiBuffer:
         if tuple(meta["names"]) != self.names:
             raise ValueError(f"{path}: buffers {meta['names']} do not match {list(self.names)}")
         self.ratio, self.min_size, self.renormalize = tuple(meta["ratio"]), int(meta["min_size"]), bool(meta["renormalize"])
-        self.__dict__.pop("_leaves_cache", None)
         for name, buffer in self.buffers.items():
-            buffer.loads(path / name)
+            if name in meta.get("empty", ()):
+                buffer.empty()
+            else:
+                buffer.loads(path / name)
         return self

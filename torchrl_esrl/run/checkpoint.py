@@ -36,9 +36,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import torch
-from torchrl.checkpoint import Checkpoint, CheckpointRotation, GlobalRNGState
+from torchrl.checkpoint import Checkpoint, CheckpointRotation, GlobalRNGState, StateDictCheckpointAdapter
 
 from torchrl_esrl.algorithm.td3_phase import PhaseProgress
+from torchrl_esrl.data.multibuffer import MultiBuffer
 
 CHECKPOINT_DIR = "checkpoints"
 
@@ -146,7 +147,7 @@ class RunCheckpoint:
             logger=LoggerPosition(self.run_dir),
             threads=_Value(lambda: {"torch": torch.get_num_threads()}, lambda s: torch.set_num_threads(int(s["torch"]))),
             **components,
-        )
+        ).register_adapter(MultiBuffer, StateDictCheckpointAdapter())  # a ReplayBuffer, saved by state_dict as ever (not dump)
         self._last_frames = self.progress.frames_now
 
     def latest(self) -> Path | None:

@@ -1,0 +1,139 @@
+"""The TorchRL private names ``torchrl_esrl.torchrl_private`` relies on, checked on real objects.
+
+A TorchRL upgrade that renames one fails here first, naming the attribute, the class and the
+installed TorchRL version; the accessors are also checked to return what they claim.
+"""
+import gymnasium
+import pytest
+import torch
+import torchrl
+from tensordict import TensorDict
+from torchrl.collectors import Collector
+from torchrl.data import LazyTensorStorage, ListStorage
+from torchrl.envs import GymEnv
+from torchrl.objectives import SoftUpdate, TD3Loss
+
+from torchrl_esrl import torchrl_private
+from torchrl_esrl.envs import make_env
+from torchrl_esrl.modules.networks import make_actor, make_critic
+
+
+@pytest.fixture(scope="module")
+def env():
+    return make_env("pendulum", seed=0)
+
+
+@pytest.fixture(scope="module")
+def td3_loss(env):
+    torch.manual_seed(0)
+    actor, critic = make_actor(3, env.action_spec, (16,)), make_critic(3, 1, (16,))
+    loss = TD3Loss(actor_network=actor, qvalue_network=critic, action_spec=env.action_spec, num_qvalue_nets=2, delay_actor=True, delay_qvalue=True)
+    loss.make_value_estimator(gamma=0.99)
+    return loss
+
+
+@pytest.fixture(scope="module")
+def collector(env):
+    collector = Collector(env, None, frames_per_batch=10, total_frames=-1)
+    next(iter(collector))
+    yield collector
+    collector.shutdown()
+
+
+def batch(n=8):
+    return TensorDict(
+        {"observation": torch.randn(n, 3), "action": torch.rand(n, 1) * 2 - 1,
+         "next": {"observation": torch.randn(n, 3), "reward": torch.randn(n, 1), "done": torch.zeros(n, 1, dtype=torch.bool),
+                  "terminated": torch.zeros(n, 1, dtype=torch.bool)}},
+        batch_size=[n],
+    )
+
+
+def real_objects(env, td3_loss, collector) -> dict:
+    storage = LazyTensorStorage(10)
+    storage.set(range(2), batch(2))
+    return {
+        "torchrl.data.LazyTensorStorage": storage,
+        "torchrl.objectives.TD3Loss": td3_loss,
+        "torchrl.objectives.SoftUpdate": SoftUpdate(td3_loss, tau=0.005),
+        "torchrl.collectors.Collector": collector,
+        "torchrl.envs.GymEnv": GymEnv("Pendulum-v1"),
+    }
+
+
+def test_every_private_name_still_exists(env, td3_loss, collector):
+    objects = real_objects(env, td3_loss, collector)
+    assert set(objects) == set(torchrl_private.PRIVATE_NAMES), "PRIVATE_NAMES and this test list different classes"
+    missing = [
+        f"{type(objects[cls]).__name__}.{name} (listed for {cls})"
+        for cls, names in torchrl_private.PRIVATE_NAMES.items()
+        for name in names
+        if not hasattr(objects[cls], name)
+    ]
+    assert not missing, f"TorchRL {torchrl.__version__} no longer has {', '.join(missing)}: update torchrl_esrl/torchrl_private.py"
+
+
+# ---------------------------------------------------------------------------------- data
+def test_tensor_storage_data_is_the_storage_itself():
+    storage = LazyTensorStorage(10)
+    assert torchrl_private.tensor_storage_data(storage) is None  # nothing written yet
+    data = batch(4)
+    storage.set(range(4), data)
+    tensors = torchrl_private.tensor_storage_data(storage)
+    assert tensors.batch_size == torch.Size([10])  # the whole preallocated storage
+    assert torch.equal(tensors["observation"][:4], data["observation"])
+    assert torch.equal(tensors[:4]["next", "reward"], storage.get(slice(0, 4))["next", "reward"])
+    tensors["observation"][0] = 7.0  # the same memory, not a copy
+    assert (storage.get(torch.tensor([0]))["observation"] == 7).all()
+    assert torchrl_private.tensor_storage_data(ListStorage(10)) is None
+
+
+# ----------------------------------------------------------------------------- objectives
+def test_td3_loss_helpers(td3_loss):
+    data = batch()
+    assert torchrl_private.loss_priority_weight(td3_loss, data) is None  # no priorities in the batch
+    params = torchrl_private.loss_detached_qvalue_params(td3_loss)
+    leaves = list(params.values(True, True))
+    assert leaves and not any(p.requires_grad for p in leaves)
+    value = torch.randn(8)
+    assert torch.allclose(torchrl_private.reduce_loss(td3_loss, value, data, None), value.mean())  # reduction "mean"
+
+
+def test_soft_update_pairs_give_softupdate_step(td3_loss):
+    import copy
+
+    loss_a, loss_b = td3_loss, copy.deepcopy(td3_loss)
+    a, b = SoftUpdate(loss_a, tau=0.1), SoftUpdate(loss_b, tau=0.1)
+    for loss in (loss_a, loss_b):  # move the sources away from the targets
+        with torch.no_grad():
+            for p in loss.parameters():
+                p.add_(0.5)
+    a.step()
+    sources, targets = torchrl_private.soft_update_pairs(b)
+    assert len(sources) == len(targets) > 0
+    for source, target in zip(sources, targets):
+        target.lerp_(source, 1 - b.eps)
+    assert (loss_a.target_qvalue_network_params == loss_b.target_qvalue_network_params).all()
+    assert (loss_a.target_actor_network_params == loss_b.target_actor_network_params).all()
+
+
+# ----------------------------------------------------------------------------- collectors
+def test_collector_accessors(collector):
+    carrier = torchrl_private.collector_carrier(collector)
+    assert "observation" in carrier.keys() and ("collector", "traj_ids") in carrier.keys(True)
+    frames, iteration = torchrl_private.collector_counters(collector)
+    state = collector.state_dict()
+    assert (frames, iteration) == (state["frames"], state["iter"]) and frames >= 10
+    torchrl_private.set_collector_counters(collector, frames + 5, iteration + 1)
+    assert (collector.state_dict()["frames"], collector.state_dict()["iter"]) == (frames + 5, iteration + 1)
+    replaced = carrier.clone()
+    replaced["observation"] = torch.full_like(replaced["observation"], 3.0)
+    torchrl_private.set_collector_carrier(collector, replaced)
+    assert torchrl_private.collector_carrier(collector) is replaced
+    assert torchrl_private.collector_traj_pool(collector).state_dict() == state["traj_pool"]
+
+
+def test_gym_env_of_unwraps_transformed_envs(env):
+    gym_env = torchrl_private.gym_env_of(env)
+    assert isinstance(gym_env, gymnasium.Env)
+    assert gym_env.unwrapped.spec.id == "Pendulum-v1"
