@@ -33,9 +33,10 @@ from omegaconf import OmegaConf  # noqa: E402
 from torchrl_esrl.envs import quiet_logs  # noqa: E402
 from torchrl_esrl.run.factories import (  # noqa: E402
     make_actor_critic, make_es, make_es_collector, make_multibuffer, make_td3, make_td3_batches, make_threshold,
-    make_train_env, seed_everything,
+    make_train_env,
 )
 from torchrl_esrl.modules.networks import flat_parameters  # noqa: E402
+from torchrl_esrl.run.determinism import seed_everything  # noqa: E402
 from torchrl_esrl.algorithm.td3_phase import td3_phase  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -37,7 +37,6 @@ class PhaseProgress:
         self.losses = {k: torch.as_tensor(v).tolist() for k, v in state["losses"].items()}
 
 
-
 def td3_phase(
     frames: int,
     batches: Iterator[TensorDictBase],
@@ -79,6 +78,6 @@ def td3_phase(
                 p.updates += 1
         if on_batch is not None:
             on_batch(batch.numel(), {"updates": p.updates, "episodes": p.episodes})
-    stats = {"updates": p.updates, "episodes": p.episodes, "frames": p.collected}
+    stats = {"updates": p.updates, "episodes": p.episodes, "frames": p.collected, "critic_loss": "", "actor_loss": ""}  # "": no update yet
     stats.update({key: sum(v) / len(v) for key, v in p.losses.items()})
     return stats

@@ -54,6 +54,10 @@ class Threshold:
         returns = torch.as_tensor(episode_returns, dtype=torch.float64).reshape(-1)
         return torch.tensor([self.is_good(r) for r in returns.tolist()], dtype=torch.bool)
 
+    def metrics(self) -> dict[str, float]:
+        """The best return and the threshold, for ``metrics.csv``."""
+        return {"best_return": self.best, "threshold": self.value}
+
     def state_dict(self) -> dict:
         return {"fraction": self.fraction, "best": self.best}
 

@@ -4,21 +4,13 @@ The dataclasses give every key of the config a type; ``conf/config.yaml`` lists 
 first in its defaults, so Hydra rejects unknown keys and values of the wrong type while
 composing, before anything runs. Values themselves live in the YAML files (``???`` here).
 A key added to the YAML must be added here too.
-
-:func:`run_cli` calls a ``@hydra.main`` function so that configuration errors (Hydra's, OmegaConf's
-and :class:`~torchrl_esrl.run.config.ConfigError`) come out as one line on stderr and exit 2,
-without a traceback. :class:`ValidateBeforeRun` is a Hydra callback that runs the value checks
-before Hydra writes anything into the run directory.
 """
 from __future__ import annotations
 
-import os
-import sys
 from dataclasses import dataclass, field
 from typing import Any, List, Optional
 
 from hydra.core.config_store import ConfigStore
-from hydra.experimental.callback import Callback
 from omegaconf import MISSING
 
 SCHEMA_NAME = "es_td3_schema"
@@ -159,55 +151,3 @@ def register_schema() -> None:
 
 
 register_schema()
-
-
-class ValidateBeforeRun(Callback):
-    """Hydra callback: value checks before Hydra creates or writes the run directory."""
-
-    def on_run_start(self, config, **kwargs: Any) -> None:
-        from torchrl_esrl.run.checkpoint import prepare_run
-        from torchrl_esrl.errors import ConfigError
-
-        try:
-            prepare_run(config, config.hydra.run.dir)
-        except ConfigError as error:
-            # Hydra turns a callback's Exception into a warning and goes on: exit here instead.
-            print(f"config error: {error}", file=sys.stderr)
-            raise SystemExit(2) from None
-
-
-def one_line(error: BaseException) -> str:
-    """A configuration error as one line: the field, the value and what is allowed."""
-    from omegaconf.errors import OmegaConfBaseException
-
-    cause = error
-    while cause.__cause__ is not None and not isinstance(cause, OmegaConfBaseException):
-        cause = cause.__cause__
-    message = str(cause).strip().splitlines()[0] if str(cause).strip() else type(cause).__name__
-    full_key = getattr(cause, "full_key", None)
-    if isinstance(cause, OmegaConfBaseException) and full_key and not message.startswith(str(full_key)):
-        message = f"{full_key}: {message}"
-    if cause is not error and str(error).strip():
-        message = f"{message} ({str(error).strip().splitlines()[0]})"
-    options = getattr(error, "options", None)  # hydra's MissingConfigException: a config group choice
-    if options:
-        message = f"{message} (allowed: {', '.join(sorted(options))})"
-    return message
-
-
-def run_cli(main) -> None:
-    """Call a ``@hydra.main`` function; config errors exit 2 with one line on stderr."""
-    from hydra.errors import HydraException
-    from omegaconf.errors import OmegaConfBaseException
-
-    from torchrl_esrl.errors import ConfigError
-
-    full_error = os.environ.get("HYDRA_FULL_ERROR")
-    os.environ["HYDRA_FULL_ERROR"] = "1"  # let Hydra raise instead of printing a multi-line report
-    try:
-        main()
-    except (ConfigError, HydraException, OmegaConfBaseException) as error:
-        if full_error == "1":
-            raise
-        print(f"config error: {one_line(error)}", file=sys.stderr)
-        raise SystemExit(2) from None
