@@ -5,7 +5,6 @@ import threading
 import pytest
 import torch
 
-from test_recipe import TINY, run_recipe
 from torchrl_esrl.algorithm.background_es import BackgroundES, Guarded
 from torchrl_esrl.data.multibuffer import MultiBuffer
 from torchrl_esrl.envs import make_env
@@ -73,18 +72,20 @@ def test_guarded_calls_hold_the_lock():
     assert guarded.call() == 7 and seen == [True] and guarded.value == 3
 
 
-def test_recipe_async_mode_same_frames_as_sequential(tmp_path):
-    result = run_recipe(*TINY, "iterations=2", "env=swimmer", "mode=async", f"hydra.run.dir={tmp_path}")
+@pytest.mark.e2e
+def test_recipe_async_mode_same_frames_as_sequential(run_recipe, tmp_path):
+    result = run_recipe("es_td3.py", "env=swimmer", "mode=async", f"hydra.run.dir={tmp_path}")
     assert result.returncode == 0, result.stderr[-3000:]
     rows = read_metrics(tmp_path / "metrics.csv")
-    assert [r["td3_frames"] for r in rows] == [600, 1200]
+    assert [r["td3_frames"] for r in rows] == [400, 800]
     assert [r["es_frames"] for r in rows] == [800, 1600]  # 2 generations x 4 offspring x 100 steps per iteration
-    assert rows[-1]["good_size"] + rows[-1]["bad_size"] == 1600 and rows[-1]["noisy_size"] == 1200
+    assert rows[-1]["good_size"] + rows[-1]["bad_size"] == 1600 and rows[-1]["noisy_size"] == 800
     assert rows[-1]["td3_updates"] > 0
     assert json.loads((tmp_path / "summary.json").read_text())["es_frames"] == 1600
 
 
-def test_unknown_mode_fails_fast(tmp_path):
-    result = run_recipe("mode=hogwild", "logger.progress=false", f"hydra.run.dir={tmp_path}")
+@pytest.mark.e2e
+def test_unknown_mode_fails_fast(run_recipe, tmp_path):
+    result = run_recipe("es_td3.py", "mode=hogwild", f"hydra.run.dir={tmp_path}")
     assert result.returncode != 0 and "mode" in result.stderr.strip().splitlines()[-1]
     assert "Traceback" not in result.stderr

@@ -1,5 +1,5 @@
 """Algorithm 1's TD3 step: act for M frames with exploration noise, every transition into the
-``noisy`` buffer, one TD3 update per frame once the buffers are ready (paper, Section 3.1)."""
+``noisy`` buffer, one TD3 update per frame once the buffers are ready (paper, Section 3.3)."""
 from __future__ import annotations
 
 from collections.abc import Callable, Iterator

@@ -1,4 +1,4 @@
-"""Good/bad routing of ES trajectories (paper, Section 4.1 and Algorithm 1).
+"""Good/bad routing of ES trajectories (paper, Sections 3.1 and 3.3, Algorithm 1).
 
 An ES trajectory whose episode return reaches the threshold goes to the ``good`` buffer,
 otherwise to ``bad``. The paper's threshold is ``0.9 x best return seen``; for a negative

@@ -1,4 +1,4 @@
-"""Typed schema of ``conf/config.yaml`` (Hydra structured config) and one-line config errors.
+"""Typed schema of ``conf/config.yaml`` (Hydra structured config): types only, the values live in the YAML.
 
 The dataclasses give every key of the config a type; ``conf/config.yaml`` lists the schema
 first in its defaults, so Hydra rejects unknown keys and values of the wrong type while
@@ -20,7 +20,7 @@ SCHEMA_NAME = "es_td3_schema"
 class EnvConfig:
     name: str = MISSING
     id: str = MISSING
-    max_episode_steps: Optional[int] = None
+    max_episode_steps: Optional[int] = MISSING
 
 
 @dataclass
@@ -94,32 +94,32 @@ class LoggerConfig:
 
 @dataclass
 class CheckpointConfig:
-    every_frames: int = 0  # also checkpoint every N TD3 frames (0: iteration boundaries only)
-    keep_last: int = 2  # checkpoints kept in <run_dir>/checkpoints
+    every_frames: int = MISSING
+    keep_last: int = MISSING
 
 
 @dataclass
 class RayConfig:
     """es.backend=ray (torchrl_esrl/collectors/ray_backend.py)."""
 
-    address: Optional[str] = None  # None: start Ray on this machine; "auto" or "host:port": join a cluster
-    num_workers: int = 2
-    worker_backend: str = "auto"
-    num_cpus_per_worker: float = 1
-    worker_kwargs: Any = field(default_factory=dict)
+    address: Optional[str] = MISSING
+    num_workers: int = MISSING
+    worker_backend: str = MISSING
+    num_cpus_per_worker: float = MISSING
+    worker_kwargs: Any = MISSING
 
 
 @dataclass
 class CEMConfig:
     """CEM-RL baseline (recipes/cem_rl.py, torchrl_esrl/es/cem.py); unused by ES-TD3Buffers."""
 
-    population_size: int = 10
-    rl_fraction: float = 0.5
-    elite_fraction: float = 0.5
-    sigma_init: float = 1.0e-3
-    damping_init: float = 1.0e-3
-    damping_end: float = 1.0e-5
-    damping_tau: float = 0.95
+    population_size: int = MISSING
+    rl_fraction: float = MISSING
+    elite_fraction: float = MISSING
+    sigma_init: float = MISSING
+    damping_init: float = MISSING
+    damping_end: float = MISSING
+    damping_tau: float = MISSING
 
 
 @dataclass
@@ -130,7 +130,7 @@ class ESTD3Config:
     device: str = MISSING
     iterations: int = MISSING
     experiment_name: str = MISSING
-    resume: Optional[str] = None  # a run directory to continue from its last checkpoint
+    resume: Optional[str] = MISSING
     env: EnvConfig = field(default_factory=EnvConfig)
     td3: TD3Config = field(default_factory=TD3Config)
     actor: ActorConfig = field(default_factory=ActorConfig)
@@ -140,10 +140,10 @@ class ESTD3Config:
     overwrite: OverwriteConfig = field(default_factory=OverwriteConfig)
     eval: EvalConfig = field(default_factory=EvalConfig)
     logger: LoggerConfig = field(default_factory=LoggerConfig)
-    mode: str = "sequential"  # sequential | async (torchrl_esrl/algorithm/background_es.py)
+    mode: str = MISSING
     ray: RayConfig = field(default_factory=RayConfig)
     checkpoint: CheckpointConfig = field(default_factory=CheckpointConfig)
-    cem: Optional[CEMConfig] = None  # only conf/cem_rl.yaml sets it
+    cem: Optional[CEMConfig] = None  # only conf/cem_rl.yaml has this section
 
 
 def register_schema() -> None:
