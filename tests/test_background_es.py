@@ -6,6 +6,7 @@ import pytest
 import torch
 
 from torchrl_esrl.algorithm.background_es import BackgroundES, Guarded
+from torchrl_esrl.algorithm.es_phase import ESPhase
 from torchrl_esrl.data.multibuffer import MultiBuffer
 from torchrl_esrl.envs import make_env
 from torchrl_esrl.es.openes import OpenES
@@ -55,6 +56,23 @@ def test_errors_in_the_es_thread_surface_at_join():
     with pytest.raises(ValueError, match="parameters per member"):
         background.join()
     background.close()
+
+
+def test_es_phase_inline_and_in_the_background_give_the_same_generations():
+    """One interface (start, then finish) for both modes; with nothing else writing, the same result."""
+    results = []
+    for background in (False, True):
+        torch.manual_seed(0)  # the same actor initialisation
+        es, collector, buffer, threshold, generations = swimmer_parts(generations=2)
+        phase = ESPhase(es, collector, buffer, threshold, generations, shared_buffer=False, background=background)
+        assert phase.inline is not background and (phase.buffer is buffer) is not background  # guarded in the background
+        phase.start()
+        returns = phase.finish()
+        phase.close()
+        results.append((torch.cat(returns.returns), es.mean.detach().clone(), phase.buffer.sizes(), returns.metrics()))
+    (inline_returns, inline_mean, inline_sizes, inline_metrics), (returns, mean, sizes, metrics) = results
+    assert torch.equal(inline_returns, returns) and torch.equal(inline_mean, mean) and inline_sizes == sizes
+    assert metrics == inline_metrics and metrics["es_generation_max_return"] == returns.max().item()
 
 
 def test_guarded_calls_hold_the_lock():

@@ -30,6 +30,7 @@ is saved after a numerical fault.
 """
 from __future__ import annotations
 
+import shutil
 from pathlib import Path
 
 import torch
@@ -99,12 +100,19 @@ class RunCheckpoint:
 
     def restore(self, path: str | Path | None = None) -> Path | None:
         """Load ``path`` (the latest checkpoint by default) into the live components; None if there is none."""
+        self._remove_dead_stages()
         path = self.latest() if path is None else Path(path)
         if path is None:
             return None
         self.checkpoint.load(path)
         self._last_frames = self.progress.frames_now
         return path
+
+    def _remove_dead_stages(self) -> None:
+        """A save killed midway leaves its hidden staging folder (TorchRL removes one only on an
+        exception). One run writes here at a time, so any found before it starts are dead."""
+        for stage in (self.run_dir / CHECKPOINT_DIR).glob(".*.stage-*"):
+            shutil.rmtree(stage, ignore_errors=True)
 
 
 def saved_config(run_dir: str | Path) -> dict | None:
