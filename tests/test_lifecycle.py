@@ -13,8 +13,6 @@ from conftest import ROOT, TINY, recipe_command
 
 from torchrl_esrl.run.metrics import read_metrics
 
-pytestmark = pytest.mark.e2e
-
 # On top of the tiny preset: episodes of 60 steps and checkpoints every 100 TD3 frames, so
 # mid-phase checkpoints land mid-episode.
 RESUME = [
@@ -72,6 +70,7 @@ def reference(tmp_path_factory):
     return run_dir
 
 
+@pytest.mark.e2e
 def test_same_seed_same_metrics(reference, tmp_path):
     result = run(tmp_path)
     assert result.returncode == 0, result.stderr[-3000:]
@@ -80,6 +79,7 @@ def test_same_seed_same_metrics(reference, tmp_path):
     assert checkpoints(tmp_path)  # checkpoints were written (the two newest kept)
 
 
+@pytest.mark.e2e
 def test_sigkill_at_several_points_then_resume_gives_the_same_metrics(reference, tmp_path):
     # 1) right after the first mid-phase checkpoint (100 TD3 frames, mid-episode)
     assert start_and_kill(tmp_path, lambda: "checkpoint-000000000100" in checkpoints(tmp_path)) == -signal.SIGKILL
@@ -96,6 +96,7 @@ def test_sigkill_at_several_points_then_resume_gives_the_same_metrics(reference,
     assert not list((tmp_path / "checkpoints").glob(".*"))  # no staged leftovers
 
 
+@pytest.mark.e2e
 def test_resume_option_continues_a_finished_run_without_rewriting_rows(reference, tmp_path):
     other = tmp_path / "elsewhere"
     result = subprocess.run(recipe_command("es_td3.py", f"resume={reference}", f"hydra.run.dir={other}"), cwd=ROOT, capture_output=True, text=True, timeout=900, env=ENV)
@@ -137,6 +138,7 @@ def test_bad_value_gives_a_one_line_error_naming_the_field(tmp_path, override, f
     assert "\n" not in message and field in message and "allowed" in message
 
 
+@pytest.mark.e2e
 @pytest.mark.parametrize(
     "override, field",
     [
@@ -155,11 +157,13 @@ def test_bad_config_is_one_line_and_touches_nothing(reference, override, field):
     assert {p: p.stat().st_mtime_ns for p in reference.rglob("*")} == before  # nothing written or lost
 
 
+@pytest.mark.e2e
 def test_other_config_in_a_run_directory_with_a_checkpoint_is_rejected(reference):
     result = run(reference, "td3.lr=0.001")
     assert result.returncode != 0 and "td3.lr" in result.stderr and len(result.stderr.strip().splitlines()) == 1, result.stderr
 
 
+@pytest.mark.e2e
 def test_unwritable_output_directory_is_rejected(tmp_path):
     blocker = tmp_path / "file"
     blocker.write_text("")
@@ -167,6 +171,7 @@ def test_unwritable_output_directory_is_rejected(tmp_path):
     assert result.returncode != 0 and "hydra.run.dir" in result.stderr and len(result.stderr.strip().splitlines()) == 1
 
 
+@pytest.mark.e2e
 @pytest.mark.parametrize("where", ["es_mean", "td3_batch"])
 def test_injected_nan_stops_the_run_and_keeps_the_last_checkpoint(tmp_path, where):
     injected = [sys.executable, str(ROOT / "tests" / "inject_nan.py"), f"{where}@1", TINY, *RESUME, "iterations=3", f"hydra.run.dir={tmp_path}"]
@@ -196,6 +201,7 @@ BASELINES = [
 ]
 
 
+@pytest.mark.e2e
 @pytest.mark.parametrize("script, extra, first_checkpoint", BASELINES, ids=[b[0] for b in BASELINES])
 def test_baseline_killed_then_resumed_gives_the_same_metrics(tmp_path, script, extra, first_checkpoint):
     reference = tmp_path / "reference"
