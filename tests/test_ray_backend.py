@@ -54,7 +54,7 @@ def test_ray_generation_equals_local_generation(cluster):
     mean = flat_parameters(actor)
     params = mean + 0.3 * torch.randn(32, mean.numel(), generator=generator)  # varied early terminations
     local = ESCollector("walker2d", actor, backend="gym", max_episode_steps=60, seed=5)
-    remote = ESCollector("walker2d", actor, backend="ray", max_episode_steps=60, seed=5, address=cluster.address, num_workers=2, worker_backend="gym")
+    remote = ESCollector("walker2d", actor, backend="ray", max_episode_steps=60, seed=5, address=cluster.address, num_workers=2, worker_backend="gym", num_cpus_per_worker=1)
     try:
         assert len({n["NodeID"] for n in ray.nodes() if n["Alive"]}) == 3
         assert len(set(remote.backend.nodes())) == 2  # the two actors run on different nodes
