@@ -14,7 +14,6 @@ import importlib.util
 import json
 import os
 import platform
-import sys
 import tempfile
 import time
 from pathlib import Path
@@ -22,10 +21,10 @@ from pathlib import Path
 import torch
 from hydra import compose, initialize_config_dir
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
+from torchrl_esrl.run.lifecycle import Run
+from torchrl_esrl.run.metrics import read_metrics
 
-from torchrl_esrl.run.metrics import read_metrics  # noqa: E402
+ROOT = Path(__file__).resolve().parents[1]
 
 # Small budget where both halves cost seconds per iteration, so overlap is visible.
 BUDGET = [
@@ -54,7 +53,7 @@ def run(train, overrides: list[str]) -> dict:
         cfg = compose("config", overrides=overrides)
     with tempfile.TemporaryDirectory() as run_dir:
         start = time.perf_counter()
-        summary = train(cfg, Path(run_dir))
+        summary = train(cfg, Run(cfg, Path(run_dir), "es_td3_buffers"))
         wall = time.perf_counter() - start
         rows = read_metrics(Path(run_dir) / "metrics.csv")
     times = [rows[0]["wall_time_s"]] + [b["wall_time_s"] - a["wall_time_s"] for a, b in zip(rows, rows[1:])]

@@ -16,19 +16,15 @@ Usage: ``python -m benchmarks.buffer_sampling [--quick] [--out PATH]``.
 from __future__ import annotations
 
 import argparse
-import sys
-from pathlib import Path
 
-if __package__ in (None, ""):
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from benchmarks.common import SHAPES, fill, interleaved, save_report  # noqa: E402  (sets OMP_WAIT_POLICY)
+from benchmarks.common import SHAPES, fill, interleaved, save_report  # sets OMP_WAIT_POLICY, first
 
-import torch  # noqa: E402
+import torch
 
-from torchrl.data import ReplayBufferEnsemble  # noqa: E402
+from torchrl.data import ReplayBufferEnsemble
 
-from torchrl_esrl.data.multibuffer import MultiBuffer, make_buffer  # noqa: E402
+from torchrl_esrl.data.multibuffer import MultiBuffer, make_buffer
 
 
 def run(capacity: int = 1_000_000, batch_size: int = 256, ratio=(0.5, 0.2, 0.3), repeats: int = 7, calls: int = 300, env_id: str = "HalfCheetah-v5") -> dict:

@@ -1,4 +1,4 @@
-"""ES population evaluation throughput (issue 3): env-steps/s of one generation of full episodes.
+"""ES population evaluation throughput: env-steps/s of one generation of full episodes.
 
 120 offspring of the paper's 2x256 tanh actor (sigma 0.005 perturbations of a random actor),
 one episode each (up to 1000 steps), measured in one run for:
@@ -27,8 +27,6 @@ import sys
 import time
 from pathlib import Path
 
-if __package__ in (None, ""):  # run as a script: make the repository importable
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import gymnasium as gym
 import mujoco

@@ -2,7 +2,7 @@
 extrapolated (figure 4).
 
 A fraction of an iteration is measured with the recipe's own factories (conf/config.yaml, the
-paper's values) and scaled by the paper's counts (Algorithm 1, Section 5.3):
+paper's values) and scaled by the paper's counts (Algorithm 1, Section 4.3):
 
   td3_env_steps   TD3 acting: TorchRL Collector, exploration policy, 1 frame per batch, writes to
                   the noisy buffer (td3_phase with no updates), per frame
@@ -18,25 +18,22 @@ Usage: ``python -m benchmarks.iteration [--quick] [--env halfcheetah] [--out PAT
 from __future__ import annotations
 
 import argparse
-import sys
 import time
 from pathlib import Path
 
-if __package__ in (None, ""):
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from benchmarks.common import fill, save_report  # noqa: E402  (sets OMP_WAIT_POLICY)
+from benchmarks.common import fill, save_report  # sets OMP_WAIT_POLICY, first
 
-import torch  # noqa: E402
-from omegaconf import OmegaConf  # noqa: E402
+from omegaconf import OmegaConf
 
-from torchrl_esrl.envs import quiet_logs  # noqa: E402
-from torchrl_esrl.run.factories import (  # noqa: E402
+from torchrl_esrl.envs import quiet_logs
+from torchrl_esrl.run.factories import (
     make_actor_critic, make_es, make_es_collector, make_multibuffer, make_td3, make_td3_batches, make_threshold,
-    make_train_env, seed_everything,
+    make_train_env,
 )
-from torchrl_esrl.modules.networks import flat_parameters  # noqa: E402
-from torchrl_esrl.algorithm.td3_phase import td3_phase  # noqa: E402
+from torchrl_esrl.modules.networks import flat_parameters
+from torchrl_esrl.run.determinism import seed_everything
+from torchrl_esrl.algorithm.td3_phase import td3_phase
 
 ROOT = Path(__file__).resolve().parents[1]
 

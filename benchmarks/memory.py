@@ -13,17 +13,14 @@ from __future__ import annotations
 
 import argparse
 import gc
-import sys
 from pathlib import Path
 
-if __package__ in (None, ""):
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from benchmarks.common import SHAPES, fill, save_report, transitions  # noqa: E402  (sets OMP_WAIT_POLICY)
+from benchmarks.common import SHAPES, fill, save_report, transitions  # sets OMP_WAIT_POLICY, first
 
-import torch  # noqa: E402
+import torch
 
-from torchrl_esrl.data.multibuffer import MultiBuffer  # noqa: E402
+from torchrl_esrl.data.multibuffer import MultiBuffer
 
 GIB = 2**30
 

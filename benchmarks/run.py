@@ -1,4 +1,4 @@
-"""All performance benchmarks of issue 3 in one command: a table and one JSON file.
+"""All performance benchmarks in one command: a table and one JSON file.
 
     python -m benchmarks.run [--quick] [--only td3 buffer iteration memory es] [--out benchmarks/results/all.json]
 
@@ -14,11 +14,9 @@ import sys
 import time
 from pathlib import Path
 
-if __package__ in (None, ""):
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from benchmarks import common  # noqa: E402,F401  (sets OMP_WAIT_POLICY before torch loads)
-from benchmarks import buffer_sampling, es_population, iteration, memory, td3_update  # noqa: E402
+from benchmarks import common  # noqa: F401  (sets OMP_WAIT_POLICY before torch loads)
+from benchmarks import buffer_sampling, es_population, iteration, memory, td3_update
 
 GIB = 2**30
 

@@ -18,22 +18,18 @@ from __future__ import annotations
 
 import argparse
 import copy
-import sys
-from pathlib import Path
 
-if __package__ in (None, ""):
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from benchmarks.common import SHAPES, fill, interleaved, save_report  # noqa: E402  (sets OMP_WAIT_POLICY)
+from benchmarks.common import SHAPES, fill, interleaved, save_report  # sets OMP_WAIT_POLICY, first
 
-import torch  # noqa: E402
-import torch.nn.functional as F  # noqa: E402
-from torch import nn  # noqa: E402
-from torchrl.data import Bounded  # noqa: E402
+import torch
+import torch.nn.functional as F
+from torch import nn
+from torchrl.data import Bounded
 
-from torchrl_esrl.data.multibuffer import MultiBuffer  # noqa: E402
-from torchrl_esrl.modules.networks import make_actor, make_critic  # noqa: E402
-from torchrl_esrl.objectives.td3 import TD3  # noqa: E402
+from torchrl_esrl.data.multibuffer import MultiBuffer
+from torchrl_esrl.modules.networks import make_actor, make_critic
+from torchrl_esrl.objectives.td3 import TD3
 
 
 def _mlp(inputs: int, outputs: int, activation, squash: bool = False) -> nn.Sequential:

@@ -13,24 +13,16 @@ recipes/td3.py. One iteration = generations until ``td3.frames_per_iteration`` n
 """
 from __future__ import annotations
 
-import sys
-from pathlib import Path
-
 import torch
 from omegaconf import DictConfig
-from tqdm.auto import tqdm
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # run from a checkout without installing
-
-from torchrl_esrl.data.multibuffer import MultiBuffer  # noqa: E402
-from torchrl_esrl.es.cem import td3_improve_member  # noqa: E402
-from torchrl_esrl.run.factories import make_actor_critic, make_cem, make_es_collector, make_td3, make_train_env  # noqa: E402
-from torchrl_esrl.run.harness import RunHarness, hydra_main  # noqa: E402
-from torchrl_esrl.modules.networks import flat_parameters  # noqa: E402
+from torchrl_esrl.data.multibuffer import MultiBuffer
+from torchrl_esrl.es.cem import td3_improve_member
+from torchrl_esrl.run.factories import make_actor_critic, make_cem, make_es_collector, make_td3, make_train_env
+from torchrl_esrl.run.lifecycle import Run, recipe_main
 
 
-def train(cfg: DictConfig, run_dir: Path) -> dict:
-    harness = RunHarness(cfg, run_dir, algorithm="cem_rl", columns=("generations", "td3_updates", "population_mean_return", "population_max_return", "critic_loss", "cem_mean_std"))
+def train(cfg: DictConfig, run: Run) -> dict:
     env = make_train_env(cfg)
     actor, critic = make_actor_critic(cfg, env)
     td3 = make_td3(cfg, actor, critic, env.action_spec)
@@ -38,10 +30,10 @@ def train(cfg: DictConfig, run_dir: Path) -> dict:
     cem = make_cem(cfg, actor)
     rl_members = int(cfg.cem.population_size * cfg.cem.rl_fraction)
     population_collector = make_es_collector(cfg, actor)  # one deterministic episode per member
-    harness.attach_actor(actor)
-
-    frames, last_generation_frames = 0, 0
-    for iteration in tqdm(range(cfg.iterations), desc="CEM-RL", unit="it", disable=not cfg.logger.progress):
+    run.resume(actor, td3=td3, buffer=buffer, cem=cem, population_collector=population_collector)
+    counters = run.progress.counters  # checkpointed with the run
+    frames, last_generation_frames = counters.setdefault("frames", 0), counters.setdefault("last_generation_frames", 0)
+    for iteration in run.iterations("CEM-RL"):
         iteration_frames, returns, critic_losses = 0, [], []
         while iteration_frames < cfg.td3.frames_per_iteration:
             population = cem.ask()
@@ -58,12 +50,13 @@ def train(cfg: DictConfig, run_dir: Path) -> dict:
             iteration_frames += generation.frames
             returns.append(generation.returns)
         frames += iteration_frames
+        counters.update(frames=frames, last_generation_frames=last_generation_frames)
         returns = torch.cat(returns)
-        harness.log(
+        run.log(
             iteration,
             frames,
             0,
-            eval_return=harness.evaluate(cem.mean),
+            eval_return=run.evaluate(cem.mean),
             generations=cem.generation,
             td3_updates=td3.updates,
             population_mean_return=returns.mean().item(),
@@ -71,10 +64,10 @@ def train(cfg: DictConfig, run_dir: Path) -> dict:
             critic_loss=sum(critic_losses) / len(critic_losses) if critic_losses else "",
             cem_mean_std=cem.var.sqrt().mean().item(),
         )
-    return harness.finish(cem.mean, {"generations": cem.generation, "td3_updates": td3.updates, "population_size": int(cfg.cem.population_size)})
+    return run.finish(cem.mean, {"generations": cem.generation, "td3_updates": td3.updates, "population_size": int(cfg.cem.population_size)})
 
 
-main = hydra_main(train, config_name="cem_rl")
+main = recipe_main(train, config_name="cem_rl", algorithm="cem_rl")
 
 if __name__ == "__main__":
     main()

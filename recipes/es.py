@@ -3,51 +3,42 @@
     python recipes/es.py env=halfcheetah experiment=quick
 
 Same OpenES, population, sigma, Adam and ES collector as recipes/es_td3.py. One iteration =
-``es.generations_per_iteration`` generations (ES-TD3Buffers' checkpoint), then a deterministic
+``es.generations_per_iteration`` generations (ES-TD3Buffers' iteration), then a deterministic
 evaluation of the mean, which is the returned policy.
 """
 from __future__ import annotations
 
-import sys
-from pathlib import Path
-
-import torch
 from omegaconf import DictConfig
-from tqdm.auto import tqdm
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # run from a checkout without installing
-
-from torchrl_esrl.run.factories import make_actor_critic, make_es, make_es_collector, make_train_env  # noqa: E402
-from torchrl_esrl.run.harness import RunHarness, hydra_main  # noqa: E402
+from torchrl_esrl.algorithm.es_phase import GenerationReturns
+from torchrl_esrl.run.factories import make_actor_critic, make_es, make_es_collector, make_train_env
+from torchrl_esrl.run.lifecycle import Run, recipe_main
 
 
-def train(cfg: DictConfig, run_dir: Path) -> dict:
-    harness = RunHarness(cfg, run_dir, algorithm="es", columns=("es_generations", "es_generation_mean_return", "es_generation_max_return"))
+def train(cfg: DictConfig, run: Run) -> dict:
     actor, _ = make_actor_critic(cfg, make_train_env(cfg))  # the env only gives the actor its shapes
     es = make_es(cfg, actor)
     es_collector = make_es_collector(cfg, actor)
-    harness.attach_actor(actor)
+    run.resume(actor, es=es, es_collector=es_collector)
 
-    for iteration in tqdm(range(cfg.iterations), desc="ES", unit="it", disable=not cfg.logger.progress):
+    for iteration in run.iterations("ES"):
         returns = []
         for _ in range(cfg.es.generations_per_iteration):
             generation = es_collector.evaluate(es.ask())
             es.tell(generation.returns)
             returns.append(generation.returns)
-        returns = torch.cat(returns) if returns else torch.zeros(1)
-        harness.log(
+        run.log(
             iteration,
             0,
             es_collector.frames,
-            eval_return=harness.evaluate(es.mean),
+            eval_return=run.evaluate(es.mean),
             es_generations=es.generation,
-            es_generation_mean_return=returns.mean().item(),
-            es_generation_max_return=returns.max().item(),
+            **GenerationReturns(returns).metrics(),
         )
-    return harness.finish(es.mean, {"es_generations": es.generation})
+    return run.finish(es.mean, {"es_generations": es.generation})
 
 
-main = hydra_main(train, config_name="es")
+main = recipe_main(train, config_name="es", algorithm="es")
 
 if __name__ == "__main__":
     main()

@@ -9,12 +9,9 @@ es_vs_td3_<env>.png and ratio_sweep_<env>.png.
 from __future__ import annotations
 
 import argparse
-import sys
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # run from a checkout without installing
-
-from torchrl_esrl.report import make_report  # noqa: E402
+from torchrl_esrl.report import make_report
 
 
 def main(argv=None) -> None:

@@ -1,4 +1,7 @@
 import os
+import subprocess
+import sys
+from pathlib import Path
 
 # Set before torch is imported: idle OpenMP threads otherwise spin and slow MuJoCo (docs/performance.md).
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
@@ -12,7 +15,26 @@ import torch  # noqa: E402
 
 torch.set_num_threads(max(1, min(2, os.cpu_count() or 1)))
 
+ROOT = Path(__file__).resolve().parents[1]
+TINY = "experiment=tiny"  # conf/experiment/tiny.yaml: the one budget of every test that runs a recipe
+
 
 @pytest.fixture(autouse=True)
 def _seed():
     torch.manual_seed(0)
+
+
+def recipe_command(script: str, *overrides: str) -> list[str]:
+    """``python recipes/<script> [-m] experiment=tiny <overrides>`` (Hydra wants -m first)."""
+    multirun = [o for o in overrides if o == "-m"]
+    return [sys.executable, str(ROOT / "recipes" / script), *multirun, TINY, *(o for o in overrides if o != "-m")]
+
+
+@pytest.fixture(scope="session")
+def run_recipe():
+    """Run a recipe with the tiny budget in a subprocess: ``run_recipe("es_td3.py", *overrides)``."""
+
+    def run(script: str, *overrides: str, env: dict | None = None, timeout: int = 600) -> subprocess.CompletedProcess:
+        return subprocess.run(recipe_command(script, *overrides), cwd=ROOT, capture_output=True, text=True, timeout=timeout, env=env)
+
+    return run

@@ -1,6 +1,7 @@
 """The baseline recipes (TD3, OpenAI-ES, CEM-RL, single-buffer ES-TD3) and the report, on real
 short MuJoCo runs. One module-scoped fixture runs every recipe once; the report reads them."""
 import csv
+import functools
 import json
 import math
 import statistics
@@ -13,39 +14,23 @@ import pytest
 from torchrl_esrl.run.metrics import CORE_COLUMNS, read_metrics
 
 ROOT = Path(__file__).resolve().parents[1]
-TINY = [
-    "experiment=quick",
-    "env=halfcheetah",
-    "iterations=2",
-    "td3.frames_per_iteration=400",
-    "td3.frames_per_batch=50",
-    "buffer.min_size=256",
-    "buffer.capacity=5000",
-    "es.population_size=4",
-    "es.generations_per_iteration=2",
-    "cem.population_size=4",
-    "env.max_episode_steps=100",
-    "eval.episodes=2",
-    "eval.final_episodes=2",
-    "logger.progress=false",
-]
+pytestmark = pytest.mark.e2e
 
 
-def run(script, *overrides):
-    multirun = [o for o in overrides if o == "-m"]  # Hydra wants -m before the overrides
-    overrides = [o for o in TINY if script == "cem_rl.py" or not o.startswith("cem.")] + [o for o in overrides if o != "-m"]
-    result = subprocess.run([sys.executable, str(ROOT / "recipes" / script), *multirun, *overrides], cwd=ROOT, capture_output=True, text=True, timeout=600)
+def run_ok(run_recipe, script, *overrides):
+    result = run_recipe(script, *overrides)
     assert result.returncode == 0, result.stderr[-3000:]
 
 
 @pytest.fixture(scope="module")
-def runs(tmp_path_factory):
+def runs(tmp_path_factory, run_recipe):
     root = tmp_path_factory.mktemp("runs")
+    run = functools.partial(run_ok, run_recipe)
     run("td3.py", "seed=0", f"hydra.run.dir={root}/td3_0")
     run("td3.py", "seed=1", f"hydra.run.dir={root}/td3_1")
     run("es.py", "seed=0", f"hydra.run.dir={root}/es_0")
     run("es.py", "seed=1", f"hydra.run.dir={root}/es_1")
-    run("cem_rl.py", "seed=0", f"hydra.run.dir={root}/cem_0")
+    run("cem_rl.py", "seed=0", "cem.population_size=4", f"hydra.run.dir={root}/cem_0")
     run("es_td3.py", "seed=0", "buffer.mode=shared", f"hydra.run.dir={root}/shared_0")
     run("es_td3.py", "-m", "seed=0", "buffer.ratio=[0.5,0.2,0.3],[0.2,0.2,0.6]", f"hydra.sweep.dir={root}/sweep")
     return root
@@ -140,19 +125,16 @@ def test_report_table_matches_the_runs_and_writes_figures(runs, tmp_path):
         assert png[:8] == b"\x89PNG\r\n\x1a\n" and len(png) > 10_000, name
 
 
-def test_tensorboard_backend_writes_event_files(tmp_path):
+def test_tensorboard_backend_writes_event_files(run_recipe, tmp_path):
     pytest.importorskip("tensorboard")
-    run("es.py", "iterations=1", "es.generations_per_iteration=1", "logger.backend=tensorboard", f"hydra.run.dir={tmp_path}")
+    run_ok(run_recipe, "es.py", "iterations=1", "es.generations_per_iteration=1", "logger.backend=tensorboard", f"hydra.run.dir={tmp_path}")
     assert list((tmp_path / "logs").rglob("events.out.tfevents.*"))
     assert (tmp_path / "metrics.csv").exists()
 
 
 @pytest.mark.parametrize("script", ["td3.py", "es.py", "cem_rl.py"])
-def test_baseline_config_errors_are_one_line(script, tmp_path):
-    result = subprocess.run(
-        [sys.executable, str(ROOT / "recipes" / script), "es.sigma=abc", "logger.progress=false", f"hydra.run.dir={tmp_path}"],
-        cwd=ROOT, capture_output=True, text=True, timeout=120,
-    )
+def test_baseline_config_errors_are_one_line(run_recipe, script, tmp_path):
+    result = run_recipe(script, "es.sigma=abc", f"hydra.run.dir={tmp_path}", timeout=120)
     assert result.returncode != 0
     lines = result.stderr.strip().splitlines()
     assert len(lines) == 1 and "es.sigma" in lines[0], result.stderr

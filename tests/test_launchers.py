@@ -7,10 +7,8 @@ import pytest
 from hydra import compose, initialize_config_dir
 from hydra.utils import get_class
 
-from test_recipe import TINY, run_recipe
-
 ROOT = Path(__file__).resolve().parents[1]
-SMALL = [*TINY, "iterations=1", "env=swimmer", "td3.frames_per_iteration=300"]
+SMALL = ["iterations=1", "env=swimmer", "td3.frames_per_iteration=300"]
 
 
 def job_interval(run_dir: Path) -> tuple[float, float]:
@@ -18,9 +16,10 @@ def job_interval(run_dir: Path) -> tuple[float, float]:
     return (run_dir / ".hydra" / "config.yaml").stat().st_mtime, (run_dir / "summary.json").stat().st_mtime
 
 
-def test_joblib_launcher_runs_two_jobs_in_parallel(tmp_path):
+@pytest.mark.e2e
+def test_joblib_launcher_runs_two_jobs_in_parallel(run_recipe, tmp_path):
     pytest.importorskip("hydra_plugins.hydra_joblib_launcher", reason="pip install -e '.[launchers]' (included in 'dev')")
-    result = run_recipe("-m", *SMALL, "seed=0,1", "hydra/launcher=joblib", "hydra.launcher.n_jobs=2", f"hydra.sweep.dir={tmp_path}")
+    result = run_recipe("es_td3.py", "-m", *SMALL, "seed=0,1", "hydra/launcher=joblib", "hydra.launcher.n_jobs=2", f"hydra.sweep.dir={tmp_path}")
     assert result.returncode == 0, result.stderr[-3000:]
     runs = sorted(p.parent for p in tmp_path.glob("*/summary.json"))
     assert [p.name for p in runs] == ["0", "1"]  # one run directory per job
@@ -39,9 +38,10 @@ def test_slurm_launcher_config_composes_and_resolves():
     assert launcher.submitit_folder.endswith(".submitit/%j")
 
 
-def test_submitit_local_executor_runs_a_job(tmp_path):
+@pytest.mark.e2e
+def test_submitit_local_executor_runs_a_job(run_recipe, tmp_path):
     pytest.importorskip("hydra_plugins.hydra_submitit_launcher", reason="pip install -e '.[launchers]' (included in 'dev')")
-    result = run_recipe("-m", *SMALL, "hydra/launcher=submitit_local", "hydra.launcher.timeout_min=10", f"hydra.sweep.dir={tmp_path}")
+    result = run_recipe("es_td3.py", "-m", *SMALL, "hydra/launcher=submitit_local", "hydra.launcher.timeout_min=10", f"hydra.sweep.dir={tmp_path}")
     assert result.returncode == 0, result.stderr[-3000:]
     summary = json.loads((tmp_path / "0" / "summary.json").read_text())
     assert summary["td3_frames"] == 300 and summary["es_frames"] == 800

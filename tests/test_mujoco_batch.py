@@ -1,4 +1,4 @@
-"""The mujoco_batch ES backend reproduces gymnasium v5 episodes (issue 3), on real MuJoCo physics."""
+"""The mujoco_batch ES backend reproduces gymnasium v5 episodes, on real MuJoCo physics."""
 from __future__ import annotations
 
 import gymnasium as gym

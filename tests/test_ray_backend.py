@@ -5,9 +5,6 @@ The cluster is started by the test with Ray's own ``ray.cluster_utils.Cluster`` 
 """
 import json
 import os
-import subprocess
-import sys
-from pathlib import Path
 
 import pytest
 import torch
@@ -24,7 +21,7 @@ from torchrl_esrl.collectors.es_collector import ESCollector  # noqa: E402
 from torchrl_esrl.modules.networks import flat_parameters, make_actor  # noqa: E402
 from torchrl_esrl.collectors.ray_backend import member_shares  # noqa: E402
 
-ROOT = Path(__file__).resolve().parents[1]
+pytestmark = pytest.mark.e2e  # a Ray cluster of three raylet processes
 NODE = {"num_cpus": 1, "object_store_memory": 80 * 2**20, "node_ip_address": "127.0.0.1"}
 
 
@@ -57,7 +54,7 @@ def test_ray_generation_equals_local_generation(cluster):
     mean = flat_parameters(actor)
     params = mean + 0.3 * torch.randn(32, mean.numel(), generator=generator)  # varied early terminations
     local = ESCollector("walker2d", actor, backend="gym", max_episode_steps=60, seed=5)
-    remote = ESCollector("walker2d", actor, backend="ray", max_episode_steps=60, seed=5, address=cluster.address, num_workers=2, worker_backend="gym")
+    remote = ESCollector("walker2d", actor, backend="ray", max_episode_steps=60, seed=5, address=cluster.address, num_workers=2, worker_backend="gym", num_cpus_per_worker=1)
     try:
         assert len({n["NodeID"] for n in ray.nodes() if n["Alive"]}) == 3
         assert len(set(remote.backend.nodes())) == 2  # the two actors run on different nodes
@@ -76,16 +73,8 @@ def test_ray_generation_equals_local_generation(cluster):
         assert torch.equal(got.transitions[key], expected.transitions[key]), key
 
 
-def test_recipe_runs_es_on_the_ray_cluster(cluster, tmp_path):
-    from test_recipe import TINY
-
-    result = subprocess.run(
-        [sys.executable, str(ROOT / "recipes" / "es_td3.py"), *TINY, "iterations=1", "env=swimmer", "td3.frames_per_iteration=300", "es.backend=ray", f"ray.address='{cluster.address}'", "ray.num_workers=2", f"hydra.run.dir={tmp_path}"],
-        cwd=ROOT,
-        capture_output=True,
-        text=True,
-        timeout=300,
-    )
+def test_recipe_runs_es_on_the_ray_cluster(cluster, run_recipe, tmp_path):
+    result = run_recipe("es_td3.py", "iterations=1", "env=swimmer", "td3.frames_per_iteration=300", "es.backend=ray", f"ray.address='{cluster.address}'", "ray.num_workers=2", f"hydra.run.dir={tmp_path}", timeout=300)
     assert result.returncode == 0, result.stderr[-3000:]
     summary = json.loads((tmp_path / "summary.json").read_text())
     assert summary["es_frames"] == 2 * 4 * 100  # 2 generations x 4 offspring x 100 steps (Swimmer never terminates)

@@ -1,4 +1,5 @@
 """TD3 through TorchRL's TD3Loss, fed by the three buffers (real envs, small budgets)."""
+import pytest
 import torch
 from torchrl.collectors import Collector
 from torchrl.modules import MLP, ValueOperator
@@ -62,6 +63,7 @@ def test_no_learning_before_every_buffer_holds_k():
     assert buffer.sizes() == {"good": 0, "bad": 0, "noisy": 1000}
 
 
+@pytest.mark.e2e  # a real training run
 def test_td3_with_three_buffers_learns_pendulum():
     """ES offspring fill good/bad through the threshold, TD3 fills noisy and learns from all three."""
     env, actor, td3 = build("pendulum", seed=1, hidden=(64, 64), lr=1e-3)

@@ -1,4 +1,4 @@
-"""Environments (paper, Section 5.1): gymnasium v5 MuJoCo tasks seen through TorchRL.
+"""Environments (paper, Section 4.1): gymnasium v5 MuJoCo tasks seen through TorchRL.
 
 TD3 acts through a TorchRL :class:`~torchrl.envs.GymEnv` (float32 observations, episode
 return and step count transforms); ES evaluates populations through the backends of

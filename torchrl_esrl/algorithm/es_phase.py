@@ -1,7 +1,7 @@
 """Algorithm 1's ES step: g generations of OpenAI-ES whose offspring trajectories feed the buffers."""
 from __future__ import annotations
 
-from collections.abc import Callable
+from dataclasses import dataclass
 
 import torch
 
@@ -15,7 +15,6 @@ def es_phase(
     threshold,
     generations: int,
     shared_buffer: bool = False,
-    on_generation: Callable[[int], None] | None = None,
 ) -> list[torch.Tensor]:
     """Run ``generations`` generations (ask, evaluate one episode each, route, tell).
 
@@ -24,7 +23,7 @@ def es_phase(
     every transition to one buffer (``noisy``), no routing. Returns each generation's returns.
     """
     returns = []
-    for index in range(generations):
+    for _ in range(generations):
         population = es.ask()
         generation = es_collector.evaluate(population)
         good = threshold.route(generation.returns)
@@ -36,6 +35,53 @@ def es_phase(
         es.tell(generation.returns)  # raises on a non-finite return
         check_finite("ES mean", es.mean)
         returns.append(generation.returns)
-        if on_generation is not None:
-            on_generation(index)
     return returns
+
+
+@dataclass
+class GenerationReturns:
+    """The offspring returns of one iteration's ES generations."""
+
+    returns: list[torch.Tensor]
+
+    def metrics(self) -> dict[str, float]:
+        every = torch.cat(self.returns) if self.returns else torch.zeros(1)
+        return {"es_generation_mean_return": every.mean().item(), "es_generation_max_return": every.max().item()}
+
+
+class ESPhase:
+    """Algorithm 1's ES step with the same two calls whether it runs inline or in the background.
+
+    ``start()`` begins an iteration's ``generations``: with ``background`` (``mode=async``) in a
+    thread, alongside the TD3 phase; inline, nothing yet. ``finish()`` returns their
+    :class:`GenerationReturns`: inline, it runs them there; in the background, it waits for them.
+    Both halves must use ``self.buffer`` and ``self.threshold``, which are lock-guarded in the
+    background mode (:mod:`~torchrl_esrl.algorithm.background_es`).
+    """
+
+    def __init__(self, es, es_collector, buffer, threshold, generations: int, shared_buffer: bool, background: bool):
+        from torchrl_esrl.algorithm.background_es import BackgroundES
+
+        self.background = None
+        if background:
+            self.background, buffer, threshold = BackgroundES.wrap(es, es_collector, buffer, threshold, generations, shared_buffer)
+        self.es, self.es_collector, self.buffer, self.threshold = es, es_collector, buffer, threshold
+        self.generations, self.shared_buffer = int(generations), bool(shared_buffer)
+
+    @property
+    def inline(self) -> bool:
+        """True when ES runs between the TD3 phases, so a mid-phase checkpoint sees a settled ES state."""
+        return self.background is None
+
+    def start(self) -> None:
+        if self.background is not None:
+            self.background.start()
+
+    def finish(self) -> GenerationReturns:
+        if self.background is not None:
+            return GenerationReturns(self.background.join())
+        return GenerationReturns(es_phase(self.es, self.es_collector, self.buffer, self.threshold, self.generations, self.shared_buffer))
+
+    def close(self) -> None:
+        if self.background is not None:
+            self.background.close()

@@ -1,4 +1,4 @@
-"""The overwrite rule (paper, Section 4.3 "Overwrite Rule" and the end of Algorithm 1).
+"""The overwrite rule (paper, Section 3.2 and the end of Algorithm 1).
 
 After each iteration the TD3 actor and the ES mean are evaluated. If TD3's evaluation,
 averaged over the last ``window`` iterations, beats the ES mean's average over the same
@@ -22,6 +22,10 @@ class OverwriteDecision:
 
     def as_dict(self) -> dict:
         return asdict(self)
+
+    def metrics(self) -> dict:
+        """Both evaluations, their averages and the decision, for ``metrics.csv``."""
+        return {"td3_eval_return": self.td3_return, "es_eval_return": self.es_return, "td3_average": self.td3_average, "es_average": self.es_average, "overwritten": self.overwrite}
 
 
 class OverwriteRule:

@@ -1,5 +1,5 @@
 """Algorithm 1's TD3 step: act for M frames with exploration noise, every transition into the
-``noisy`` buffer, one TD3 update per frame once the buffers are ready (paper, Section 3.1)."""
+``noisy`` buffer, one TD3 update per frame once the buffers are ready (paper, Section 3.3)."""
 from __future__ import annotations
 
 from collections.abc import Callable, Iterator
@@ -35,7 +35,6 @@ class PhaseProgress:
         self.collected, self.updates, self.episodes = int(state["collected"]), int(state["updates"]), int(state["episodes"])
         self.owed = float(state["owed"])
         self.losses = {k: torch.as_tensor(v).tolist() for k, v in state["losses"].items()}
-
 
 
 def td3_phase(
@@ -79,6 +78,6 @@ def td3_phase(
                 p.updates += 1
         if on_batch is not None:
             on_batch(batch.numel(), {"updates": p.updates, "episodes": p.episodes})
-    stats = {"updates": p.updates, "episodes": p.episodes, "frames": p.collected}
+    stats = {"updates": p.updates, "episodes": p.episodes, "frames": p.collected, "critic_loss": "", "actor_loss": ""}  # "": no update yet
     stats.update({key: sum(v) / len(v) for key, v in p.losses.items()})
     return stats

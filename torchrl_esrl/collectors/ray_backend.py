@@ -118,10 +118,11 @@ class RayBackend:
         env_id: str,
         population_actor: PopulationActor,
         max_episode_steps: int | None = None,
+        *,
+        num_workers: int,  # the values live in conf/config.yaml's ray section
+        worker_backend: str,
+        num_cpus_per_worker: float,
         address: str | None = None,
-        num_workers: int = 2,
-        worker_backend: str = "auto",
-        num_cpus_per_worker: float = 1,
         worker_kwargs: dict | None = None,
         spread: bool = True,
         object_store_memory: int | None = None,
@@ -169,14 +170,7 @@ def ray_backend_kwargs(cfg) -> dict:
     """Keyword arguments of :class:`RayBackend` from the ``ray`` section of the Hydra config."""
     from omegaconf import OmegaConf
 
-    section = OmegaConf.to_container(cfg.ray, resolve=True)
-    return {
-        "address": section.get("address"),
-        "num_workers": int(section.get("num_workers", 2)),
-        "worker_backend": section.get("worker_backend", "auto"),
-        "num_cpus_per_worker": section.get("num_cpus_per_worker", 1),
-        "worker_kwargs": section.get("worker_kwargs") or {},
-    }
+    return OmegaConf.to_container(cfg.ray, resolve=True)  # its keys are RayBackend's arguments
 
 
 def make_ray_backend(env_id: str, population_actor: PopulationActor, max_episode_steps: int | None = None, **kwargs) -> RayBackend:

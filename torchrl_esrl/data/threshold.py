@@ -1,4 +1,4 @@
-"""Good/bad routing of ES trajectories (paper, Section 4.1 and Algorithm 1).
+"""Good/bad routing of ES trajectories (paper, Sections 3.1 and 3.3, Algorithm 1).
 
 An ES trajectory whose episode return reaches the threshold goes to the ``good`` buffer,
 otherwise to ``bad``. The paper's threshold is ``0.9 x best return seen``; for a negative
@@ -53,6 +53,10 @@ class Threshold:
         """
         returns = torch.as_tensor(episode_returns, dtype=torch.float64).reshape(-1)
         return torch.tensor([self.is_good(r) for r in returns.tolist()], dtype=torch.bool)
+
+    def metrics(self) -> dict[str, float]:
+        """The best return and the threshold, for ``metrics.csv``."""
+        return {"best_return": self.best, "threshold": self.value}
 
     def state_dict(self) -> dict:
         return {"fraction": self.fraction, "best": self.best}

@@ -1,2 +1,3 @@
-"""Run infrastructure shared by every recipe: config schema and checks, the harness (seeding,
-evaluation, metrics, summary), checkpoints and resume, and the ``make_*`` factories."""
+"""Run infrastructure shared by every recipe: the lifecycle (``lifecycle.recipe_main``), the
+harness (metrics, evaluation, summary), checkpoints and resume, config schema and checks, and
+the ``make_*`` factories."""

@@ -37,24 +37,23 @@ def validate_config(cfg) -> None:
         raise ConfigError(f"buffer.capacity: {cfg.buffer.capacity} is smaller than buffer.batch_size={cfg.buffer.batch_size} (allowed: >= batch_size)")
     if cfg.buffer.min_size < cfg.buffer.batch_size:
         raise ConfigError(f"buffer.min_size: {cfg.buffer.min_size} is smaller than buffer.batch_size={cfg.buffer.batch_size} (allowed: K >= batch_size)")
-    if cfg.buffer.get("mode", "multi") not in ("multi", "shared"):
+    if cfg.buffer.mode not in ("multi", "shared"):
         raise ConfigError(f"buffer.mode: {cfg.buffer.mode!r} is invalid (allowed: multi, shared)")
     if not 0 <= cfg.threshold.fraction <= 1:
         raise ConfigError(f"threshold.fraction: {cfg.threshold.fraction} is invalid (allowed: a number in [0, 1])")
-    if cfg.get("mode", "sequential") not in ("sequential", "async"):
+    if cfg.mode not in ("sequential", "async"):
         raise ConfigError(f"mode: {cfg.mode!r} is invalid (allowed: sequential, async)")
     validate_run_settings(cfg)
 
 
 def validate_run_settings(cfg) -> None:
-    """Checks of the keys added by issue #5 (iteration counts, checkpoints)."""
+    """Checks of the iteration counts and the checkpoint settings."""
     _positive(cfg, "es.generations_per_iteration", integer=True)
     _positive(cfg, "buffer.min_size", integer=True)
-    every = cfg.get("checkpoint", {}).get("every_frames", 0)
+    every = cfg.checkpoint.every_frames
     if isinstance(every, bool) or not isinstance(every, int) or every < 0:
         raise ConfigError(f"checkpoint.every_frames: {every!r} is invalid (allowed: 0 to disable, or a positive integer)")
-    if "checkpoint" in cfg:
-        _positive(cfg, "checkpoint.keep_last", integer=True)
+    _positive(cfg, "checkpoint.keep_last", integer=True)
 
 
 def check_output_dir(path) -> None:

@@ -5,9 +5,6 @@ TorchRL's ``sota-implementations``; recipes stay a readable transcription of Alg
 """
 from __future__ import annotations
 
-import random
-
-import numpy as np
 import torch
 from omegaconf import DictConfig
 
@@ -16,16 +13,11 @@ from torchrl_esrl.envs import make_env
 from torchrl_esrl.es.openes import OpenES
 from torchrl_esrl.collectors.es_collector import ESCollector
 from torchrl_esrl.modules.networks import flat_parameters, make_actor, make_critic
+from torchrl_esrl.algorithm.es_phase import ESPhase
 from torchrl_esrl.algorithm.overwrite import OverwriteRule
 from torchrl_esrl.collectors.td3_collector import make_td3_collector
 from torchrl_esrl.objectives.td3 import TD3
 from torchrl_esrl.data.threshold import Threshold
-
-
-def seed_everything(seed: int) -> None:
-    random.seed(seed)
-    np.random.seed(seed)
-    torch.manual_seed(seed)
 
 
 def make_train_env(cfg: DictConfig):
@@ -69,7 +61,7 @@ def make_multibuffer(cfg: DictConfig) -> MultiBuffer:
     """The good/bad/noisy MultiBuffer; ``buffer.mode=shared`` gives one buffer for everything
     (ERL-style ablation: ``ratio=(0, 0, 1)``, ES transitions are written to it too)."""
     c = cfg.buffer
-    shared = c.get("mode", "multi") == "shared"
+    shared = c.mode == "shared"
     return MultiBuffer(
         ratio=[0.0, 0.0, 1.0] if shared else list(c.ratio),
         capacity=c.capacity,
@@ -123,6 +115,11 @@ def make_es_collector(cfg: DictConfig, actor) -> ESCollector:
 
 def make_threshold(cfg: DictConfig) -> Threshold:
     return Threshold(fraction=cfg.threshold.fraction)
+
+
+def make_es_phase(cfg: DictConfig, es: OpenES, es_collector: ESCollector, buffer: MultiBuffer, threshold: Threshold) -> ESPhase:
+    """Algorithm 1's ES step; ``mode=async`` runs it in a thread alongside the TD3 phase."""
+    return ESPhase(es, es_collector, buffer, threshold, cfg.es.generations_per_iteration, shared_buffer=cfg.buffer.mode == "shared", background=cfg.mode == "async")
 
 
 def make_overwrite_rule(cfg: DictConfig) -> OverwriteRule:

@@ -13,23 +13,17 @@ Evaluation frames are counted in neither ``td3_frames`` nor ``es_frames``.
 """
 from __future__ import annotations
 
-import functools
 import time
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Mapping
 from pathlib import Path
 
-import hydra
 import torch
-from hydra.core.hydra_config import HydraConfig
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig
 
-from torchrl_esrl.errors import ConfigError
-from torchrl_esrl.run.config import validate_config
 from torchrl_esrl.envs import quiet_logs
 from torchrl_esrl.collectors.es_collector import ESCollector
-from torchrl_esrl.run.factories import seed_everything
-from torchrl_esrl.run.metrics import CORE_COLUMNS, MetricsLog, write_json
-from torchrl_esrl.run.schema import run_cli
+from torchrl_esrl.run.determinism import seed_everything
+from torchrl_esrl.run.metrics import MetricsLog, write_json
 
 
 class RunHarness:
@@ -40,12 +34,11 @@ class RunHarness:
             ``td3.frames_per_iteration``).
         run_dir: the Hydra run directory.
         algorithm: name written to ``summary.json`` (the report groups runs by it).
-        columns: the recipe's own ``metrics.csv`` columns, after :data:`CORE_COLUMNS`.
         clock: seconds since the run started (a resumable clock survives a restart); by default
             the time since this harness was built.
     """
 
-    def __init__(self, cfg: DictConfig, run_dir: str | Path, algorithm: str, columns: Sequence[str] = (), clock: Callable[[], float] | None = None):
+    def __init__(self, cfg: DictConfig, run_dir: str | Path, algorithm: str, clock: Callable[[], float] | None = None):
         quiet_logs()
         seed_everything(cfg.seed)
         self.cfg = cfg
@@ -53,8 +46,7 @@ class RunHarness:
         self.run_dir = Path(run_dir)
         start = time.perf_counter()
         self.clock = clock or (lambda: time.perf_counter() - start)
-        extra = [c for c in columns if c not in CORE_COLUMNS]
-        self.log_ = MetricsLog(self.run_dir, backend=cfg.logger.backend, experiment_name=cfg.experiment_name, columns=(*CORE_COLUMNS, *extra))
+        self.log_ = MetricsLog(self.run_dir, backend=cfg.logger.backend, experiment_name=cfg.experiment_name)
         self.evaluator: ESCollector | None = None
         self.last_row: dict = {}
 
@@ -75,7 +67,8 @@ class RunHarness:
         return self.evaluator.evaluate_policy(vector.detach(), episodes).returns.mean().item()
 
     def log(self, iteration: int, td3_frames: int, es_frames: int, eval_return: float, **extra) -> dict:
-        """One checkpoint row of ``metrics.csv`` (and of the TorchRL logger)."""
+        """One row of ``metrics.csv`` (and of the TorchRL logger): the core columns, then ``extra``
+        (each component's ``metrics()``)."""
         row = {
             "iteration": iteration,
             "td3_frames": int(td3_frames),
@@ -113,30 +106,3 @@ class RunHarness:
         summary["wall_time_s"] = self.wall_time_s
         write_json(self.run_dir / "summary.json", summary)
         return summary
-
-
-CONF_DIR = Path(__file__).resolve().parents[2] / "conf"
-
-
-def hydra_main(train: Callable[[DictConfig, Path], dict], config_name: str) -> Callable[[], None]:
-    """The ``main`` of a baseline recipe: Hydra config ``conf/<config_name>.yaml``, fail-fast
-    validation, then ``train(cfg, run_dir)`` in the Hydra run directory. Called through
-    :func:`~torchrl_esrl.run.schema.run_cli`, as ``recipes/es_td3.py`` is: Hydra's own config errors
-    (unknown keys, wrong types) are one line too, and a numerical fault stops with one line."""
-
-    @hydra.main(version_base="1.3", config_path=str(CONF_DIR), config_name=config_name)
-    def main(cfg: DictConfig) -> None:
-        try:
-            validate_config(cfg)
-        except ConfigError as error:
-            raise SystemExit(f"config error: {error}") from None
-        run_dir = Path(HydraConfig.get().runtime.output_dir)
-        if cfg.logger.progress:
-            print(OmegaConf.to_yaml(cfg, resolve=True))
-        try:
-            summary = train(cfg, run_dir)
-        except FloatingPointError as fault:
-            raise SystemExit(f"numerical fault: {fault}; run stopped") from None
-        print(f"{summary['algorithm']}: final return {summary['final_return']:.1f} -> {run_dir}")
-
-    return functools.partial(run_cli, main)

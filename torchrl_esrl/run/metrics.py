@@ -24,49 +24,37 @@ CORE_COLUMNS = (
     "wall_time_s",
 )
 
-# ES-TD3Buffers' columns (recipes/es_td3.py).
-METRIC_COLUMNS = (
-    *CORE_COLUMNS[:-1],
-    "td3_updates",
-    "td3_eval_return",
-    "es_eval_return",
-    "td3_average",
-    "es_average",
-    "overwritten",
-    "best_return",
-    "threshold",
-    "good_size",
-    "bad_size",
-    "noisy_size",
-    "es_generation_mean_return",
-    "es_generation_max_return",
-    "critic_loss",
-    "actor_loss",
-    "buffer_mode",
-    "wall_time_s",
-)
-
 
 class MetricsLog:
-    """Appends iteration rows to ``<run_dir>/metrics.csv`` and mirrors them to a TorchRL logger."""
+    """Appends iteration rows to ``<run_dir>/metrics.csv`` and mirrors them to a TorchRL logger.
 
-    def __init__(self, run_dir: str | Path, backend: str = "csv", experiment_name: str = "es_td3", columns=METRIC_COLUMNS, logger_kwargs: Mapping | None = None):
+    The columns are the keys of the first row (or the header of the file a resumed run
+    continues); a later row with other keys raises :class:`KeyError` rather than losing them.
+    """
+
+    def __init__(self, run_dir: str | Path, backend: str, experiment_name: str, logger_kwargs: Mapping | None = None):
         self.run_dir = Path(run_dir)
         self.run_dir.mkdir(parents=True, exist_ok=True)
         self.path = self.run_dir / "metrics.csv"
-        self.columns = tuple(columns)
-        self.rows: list[dict] = []
         self.logger = get_logger(backend, logger_name=str(self.run_dir / "logs"), experiment_name=experiment_name, **dict(logger_kwargs or {})) if backend else None
 
+    def columns(self) -> tuple[str, ...] | None:
+        """The header of ``metrics.csv`` (None before its first row)."""
+        if not self.path.exists() or self.path.stat().st_size == 0:
+            return None
+        with self.path.open(newline="") as handle:
+            return tuple(next(csv.reader(handle)))
+
     def log(self, row: Mapping) -> None:
-        row = {key: row.get(key, "") for key in self.columns}
-        new = not self.path.exists()
+        columns = self.columns()
+        if columns is not None and tuple(row) != columns:
+            unknown, missing = sorted(set(row) - set(columns)), sorted(set(columns) - set(row))
+            raise KeyError(f"metrics row does not match the columns of {self.path}: unknown {unknown}, missing {missing} (or in another order)")
         with self.path.open("a", newline="") as handle:
-            writer = csv.DictWriter(handle, fieldnames=self.columns)
-            if new:
+            writer = csv.DictWriter(handle, fieldnames=tuple(row))
+            if columns is None:
                 writer.writeheader()
             writer.writerow(row)
-        self.rows.append(row)
         if self.logger is not None:
             step = int(row.get("td3_frames") or row.get("iteration") or 0)  # ES alone has no TD3 frames
             for key, value in row.items():

@@ -1,24 +1,16 @@
-"""Typed schema of ``conf/config.yaml`` (Hydra structured config) and one-line config errors.
+"""Typed schema of ``conf/config.yaml`` (Hydra structured config): types only, the values live in the YAML.
 
 The dataclasses give every key of the config a type; ``conf/config.yaml`` lists the schema
 first in its defaults, so Hydra rejects unknown keys and values of the wrong type while
 composing, before anything runs. Values themselves live in the YAML files (``???`` here).
 A key added to the YAML must be added here too.
-
-:func:`run_cli` calls a ``@hydra.main`` function so that configuration errors (Hydra's, OmegaConf's
-and :class:`~torchrl_esrl.run.config.ConfigError`) come out as one line on stderr and exit 2,
-without a traceback. :class:`ValidateBeforeRun` is a Hydra callback that runs the value checks
-before Hydra writes anything into the run directory.
 """
 from __future__ import annotations
 
-import os
-import sys
 from dataclasses import dataclass, field
 from typing import Any, List, Optional
 
 from hydra.core.config_store import ConfigStore
-from hydra.experimental.callback import Callback
 from omegaconf import MISSING
 
 SCHEMA_NAME = "es_td3_schema"
@@ -28,7 +20,7 @@ SCHEMA_NAME = "es_td3_schema"
 class EnvConfig:
     name: str = MISSING
     id: str = MISSING
-    max_episode_steps: Optional[int] = None
+    max_episode_steps: Optional[int] = MISSING
 
 
 @dataclass
@@ -102,32 +94,32 @@ class LoggerConfig:
 
 @dataclass
 class CheckpointConfig:
-    every_frames: int = 0  # also checkpoint every N TD3 frames (0: iteration boundaries only)
-    keep_last: int = 2  # checkpoints kept in <run_dir>/checkpoints
+    every_frames: int = MISSING
+    keep_last: int = MISSING
 
 
 @dataclass
 class RayConfig:
     """es.backend=ray (torchrl_esrl/collectors/ray_backend.py)."""
 
-    address: Optional[str] = None  # None: start Ray on this machine; "auto" or "host:port": join a cluster
-    num_workers: int = 2
-    worker_backend: str = "auto"
-    num_cpus_per_worker: float = 1
-    worker_kwargs: Any = field(default_factory=dict)
+    address: Optional[str] = MISSING
+    num_workers: int = MISSING
+    worker_backend: str = MISSING
+    num_cpus_per_worker: float = MISSING
+    worker_kwargs: Any = MISSING
 
 
 @dataclass
 class CEMConfig:
     """CEM-RL baseline (recipes/cem_rl.py, torchrl_esrl/es/cem.py); unused by ES-TD3Buffers."""
 
-    population_size: int = 10
-    rl_fraction: float = 0.5
-    elite_fraction: float = 0.5
-    sigma_init: float = 1.0e-3
-    damping_init: float = 1.0e-3
-    damping_end: float = 1.0e-5
-    damping_tau: float = 0.95
+    population_size: int = MISSING
+    rl_fraction: float = MISSING
+    elite_fraction: float = MISSING
+    sigma_init: float = MISSING
+    damping_init: float = MISSING
+    damping_end: float = MISSING
+    damping_tau: float = MISSING
 
 
 @dataclass
@@ -138,7 +130,7 @@ class ESTD3Config:
     device: str = MISSING
     iterations: int = MISSING
     experiment_name: str = MISSING
-    resume: Optional[str] = None  # a run directory to continue from its last checkpoint
+    resume: Optional[str] = MISSING
     env: EnvConfig = field(default_factory=EnvConfig)
     td3: TD3Config = field(default_factory=TD3Config)
     actor: ActorConfig = field(default_factory=ActorConfig)
@@ -148,10 +140,10 @@ class ESTD3Config:
     overwrite: OverwriteConfig = field(default_factory=OverwriteConfig)
     eval: EvalConfig = field(default_factory=EvalConfig)
     logger: LoggerConfig = field(default_factory=LoggerConfig)
-    mode: str = "sequential"  # sequential | async (torchrl_esrl/algorithm/background_es.py)
+    mode: str = MISSING
     ray: RayConfig = field(default_factory=RayConfig)
     checkpoint: CheckpointConfig = field(default_factory=CheckpointConfig)
-    cem: Optional[CEMConfig] = None  # only conf/cem_rl.yaml sets it
+    cem: Optional[CEMConfig] = None  # only conf/cem_rl.yaml has this section
 
 
 def register_schema() -> None:
@@ -159,55 +151,3 @@ def register_schema() -> None:
 
 
 register_schema()
-
-
-class ValidateBeforeRun(Callback):
-    """Hydra callback: value checks before Hydra creates or writes the run directory."""
-
-    def on_run_start(self, config, **kwargs: Any) -> None:
-        from torchrl_esrl.run.checkpoint import prepare_run
-        from torchrl_esrl.errors import ConfigError
-
-        try:
-            prepare_run(config, config.hydra.run.dir)
-        except ConfigError as error:
-            # Hydra turns a callback's Exception into a warning and goes on: exit here instead.
-            print(f"config error: {error}", file=sys.stderr)
-            raise SystemExit(2) from None
-
-
-def one_line(error: BaseException) -> str:
-    """A configuration error as one line: the field, the value and what is allowed."""
-    from omegaconf.errors import OmegaConfBaseException
-
-    cause = error
-    while cause.__cause__ is not None and not isinstance(cause, OmegaConfBaseException):
-        cause = cause.__cause__
-    message = str(cause).strip().splitlines()[0] if str(cause).strip() else type(cause).__name__
-    full_key = getattr(cause, "full_key", None)
-    if isinstance(cause, OmegaConfBaseException) and full_key and not message.startswith(str(full_key)):
-        message = f"{full_key}: {message}"
-    if cause is not error and str(error).strip():
-        message = f"{message} ({str(error).strip().splitlines()[0]})"
-    options = getattr(error, "options", None)  # hydra's MissingConfigException: a config group choice
-    if options:
-        message = f"{message} (allowed: {', '.join(sorted(options))})"
-    return message
-
-
-def run_cli(main) -> None:
-    """Call a ``@hydra.main`` function; config errors exit 2 with one line on stderr."""
-    from hydra.errors import HydraException
-    from omegaconf.errors import OmegaConfBaseException
-
-    from torchrl_esrl.errors import ConfigError
-
-    full_error = os.environ.get("HYDRA_FULL_ERROR")
-    os.environ["HYDRA_FULL_ERROR"] = "1"  # let Hydra raise instead of printing a multi-line report
-    try:
-        main()
-    except (ConfigError, HydraException, OmegaConfBaseException) as error:
-        if full_error == "1":
-            raise
-        print(f"config error: {one_line(error)}", file=sys.stderr)
-        raise SystemExit(2) from None

@@ -5,8 +5,8 @@ import threading
 import pytest
 import torch
 
-from test_recipe import TINY, run_recipe
 from torchrl_esrl.algorithm.background_es import BackgroundES, Guarded
+from torchrl_esrl.algorithm.es_phase import ESPhase
 from torchrl_esrl.data.multibuffer import MultiBuffer
 from torchrl_esrl.envs import make_env
 from torchrl_esrl.es.openes import OpenES
@@ -58,6 +58,23 @@ def test_errors_in_the_es_thread_surface_at_join():
     background.close()
 
 
+def test_es_phase_inline_and_in_the_background_give_the_same_generations():
+    """One interface (start, then finish) for both modes; with nothing else writing, the same result."""
+    results = []
+    for background in (False, True):
+        torch.manual_seed(0)  # the same actor initialisation
+        es, collector, buffer, threshold, generations = swimmer_parts(generations=2)
+        phase = ESPhase(es, collector, buffer, threshold, generations, shared_buffer=False, background=background)
+        assert phase.inline is not background and (phase.buffer is buffer) is not background  # guarded in the background
+        phase.start()
+        returns = phase.finish()
+        phase.close()
+        results.append((torch.cat(returns.returns), es.mean.detach().clone(), phase.buffer.sizes(), returns.metrics()))
+    (inline_returns, inline_mean, inline_sizes, inline_metrics), (returns, mean, sizes, metrics) = results
+    assert torch.equal(inline_returns, returns) and torch.equal(inline_mean, mean) and inline_sizes == sizes
+    assert metrics == inline_metrics and metrics["es_generation_max_return"] == returns.max().item()
+
+
 def test_guarded_calls_hold_the_lock():
     lock = threading.RLock()
     seen = []
@@ -73,18 +90,20 @@ def test_guarded_calls_hold_the_lock():
     assert guarded.call() == 7 and seen == [True] and guarded.value == 3
 
 
-def test_recipe_async_mode_same_frames_as_sequential(tmp_path):
-    result = run_recipe(*TINY, "iterations=2", "env=swimmer", "mode=async", f"hydra.run.dir={tmp_path}")
+@pytest.mark.e2e
+def test_recipe_async_mode_same_frames_as_sequential(run_recipe, tmp_path):
+    result = run_recipe("es_td3.py", "env=swimmer", "mode=async", f"hydra.run.dir={tmp_path}")
     assert result.returncode == 0, result.stderr[-3000:]
     rows = read_metrics(tmp_path / "metrics.csv")
-    assert [r["td3_frames"] for r in rows] == [600, 1200]
+    assert [r["td3_frames"] for r in rows] == [400, 800]
     assert [r["es_frames"] for r in rows] == [800, 1600]  # 2 generations x 4 offspring x 100 steps per iteration
-    assert rows[-1]["good_size"] + rows[-1]["bad_size"] == 1600 and rows[-1]["noisy_size"] == 1200
+    assert rows[-1]["good_size"] + rows[-1]["bad_size"] == 1600 and rows[-1]["noisy_size"] == 800
     assert rows[-1]["td3_updates"] > 0
     assert json.loads((tmp_path / "summary.json").read_text())["es_frames"] == 1600
 
 
-def test_unknown_mode_fails_fast(tmp_path):
-    result = run_recipe("mode=hogwild", "logger.progress=false", f"hydra.run.dir={tmp_path}")
+@pytest.mark.e2e
+def test_unknown_mode_fails_fast(run_recipe, tmp_path):
+    result = run_recipe("es_td3.py", "mode=hogwild", f"hydra.run.dir={tmp_path}")
     assert result.returncode != 0 and "mode" in result.stderr.strip().splitlines()[-1]
     assert "Traceback" not in result.stderr

@@ -1,5 +1,6 @@
-"""Issue #5 on the real recipe in real subprocesses: determinism, SIGKILL then resume, bad configs
-as one line, and NaN faults that stop the run and keep the last checkpoint loadable."""
+"""The run lifecycle (torchrl_esrl/run/lifecycle.py) on the real recipes in real subprocesses:
+determinism, SIGKILL then resume for every recipe, bad configs as one line, and NaN faults that
+stop the run and keep the last checkpoint loadable."""
 import os
 import signal
 import subprocess
@@ -8,42 +9,38 @@ import time
 from pathlib import Path
 
 import pytest
-import torch
+from conftest import ROOT, TINY, recipe_command
 
 from torchrl_esrl.run.metrics import read_metrics
 
-ROOT = Path(__file__).resolve().parents[1]
-# Episodes of 60 steps and checkpoints every 100 TD3 frames: mid-phase checkpoints land mid-episode.
-TINY = [
-    "experiment=quick",
+# On top of the tiny preset: episodes of 60 steps and checkpoints every 100 TD3 frames, so
+# mid-phase checkpoints land mid-episode.
+RESUME = [
     "env=halfcheetah",
-    "iterations=2",
     "td3.frames_per_iteration=200",
     "td3.frames_per_batch=20",
     "buffer.min_size=64",
     "buffer.batch_size=64",
     "buffer.capacity=2000",
-    "es.population_size=4",
-    "es.generations_per_iteration=2",
     "env.max_episode_steps=60",
     "eval.episodes=1",
     "eval.final_episodes=1",
     "checkpoint.every_frames=100",
-    "logger.progress=false",
 ]
 ENV = {**os.environ, "MUJOCO_QUIET": "1", "OMP_NUM_THREADS": "1"}
 
 
-def command(run_dir, *extra):
-    return [sys.executable, str(ROOT / "recipes" / "es_td3.py"), *TINY, *extra, f"hydra.run.dir={run_dir}"]
+def command(run_dir, *extra, script="es_td3.py"):
+    return recipe_command(script, *RESUME, *extra, f"hydra.run.dir={run_dir}")
 
 
-def run(run_dir, *extra, env=None):
-    return subprocess.run(command(run_dir, *extra), cwd=ROOT, capture_output=True, text=True, timeout=900, env=env or ENV)
+def run(run_dir, *extra, env=None, script="es_td3.py"):
+    return subprocess.run(command(run_dir, *extra, script=script), cwd=ROOT, capture_output=True, text=True, timeout=900, env=env or ENV)
 
 
 def rows_without_wall_time(run_dir):
-    return [{k: v for k, v in row.items() if k != "wall_time_s"} for row in read_metrics(Path(run_dir) / "metrics.csv")]
+    path = Path(run_dir) / "metrics.csv"
+    return [{k: v for k, v in row.items() if k != "wall_time_s"} for row in read_metrics(path)] if path.exists() else []
 
 
 def checkpoints(run_dir):
@@ -51,9 +48,9 @@ def checkpoints(run_dir):
     return sorted(p.name for p in directory.glob("checkpoint-*")) if directory.exists() else []
 
 
-def start_and_kill(run_dir, ready, delay=0.0):
+def start_and_kill(run_dir, ready, delay=0.0, *extra, script="es_td3.py"):
     """Start the recipe, SIGKILL it once ``ready()`` holds (plus ``delay`` seconds)."""
-    process = subprocess.Popen(command(run_dir), cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=ENV)
+    process = subprocess.Popen(command(run_dir, *extra, script=script), cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=ENV)
     try:
         deadline = time.monotonic() + 900
         while not ready() and process.poll() is None and time.monotonic() < deadline:
@@ -73,6 +70,7 @@ def reference(tmp_path_factory):
     return run_dir
 
 
+@pytest.mark.e2e
 def test_same_seed_same_metrics(reference, tmp_path):
     result = run(tmp_path)
     assert result.returncode == 0, result.stderr[-3000:]
@@ -81,6 +79,7 @@ def test_same_seed_same_metrics(reference, tmp_path):
     assert checkpoints(tmp_path)  # checkpoints were written (the two newest kept)
 
 
+@pytest.mark.e2e
 def test_sigkill_at_several_points_then_resume_gives_the_same_metrics(reference, tmp_path):
     # 1) right after the first mid-phase checkpoint (100 TD3 frames, mid-episode)
     assert start_and_kill(tmp_path, lambda: "checkpoint-000000000100" in checkpoints(tmp_path)) == -signal.SIGKILL
@@ -97,12 +96,10 @@ def test_sigkill_at_several_points_then_resume_gives_the_same_metrics(reference,
     assert not list((tmp_path / "checkpoints").glob(".*"))  # no staged leftovers
 
 
+@pytest.mark.e2e
 def test_resume_option_continues_a_finished_run_without_rewriting_rows(reference, tmp_path):
     other = tmp_path / "elsewhere"
-    result = subprocess.run(
-        [sys.executable, str(ROOT / "recipes" / "es_td3.py"), f"resume={reference}", "logger.progress=false", f"hydra.run.dir={other}"],
-        cwd=ROOT, capture_output=True, text=True, timeout=900, env=ENV,
-    )
+    result = subprocess.run(recipe_command("es_td3.py", f"resume={reference}", f"hydra.run.dir={other}"), cwd=ROOT, capture_output=True, text=True, timeout=900, env=ENV)
     assert result.returncode == 0, result.stderr[-3000:]
     assert len(read_metrics(reference / "metrics.csv")) == 2
 
@@ -130,17 +127,18 @@ VALUE_ERRORS = [
 def test_bad_value_gives_a_one_line_error_naming_the_field(tmp_path, override, field):
     from hydra import compose, initialize_config_dir
 
-    from torchrl_esrl.run.checkpoint import prepare_run
     from torchrl_esrl.errors import ConfigError
+    from torchrl_esrl.run.resume import prepare_run
 
     with initialize_config_dir(str(ROOT / "conf"), version_base="1.3"):
-        cfg = compose("config", overrides=[*TINY, override])
+        cfg = compose("config", overrides=[TINY, *RESUME, override])
     with pytest.raises(ConfigError) as error:
         prepare_run(cfg, tmp_path / "run")
     message = str(error.value)
     assert "\n" not in message and field in message and "allowed" in message
 
 
+@pytest.mark.e2e
 @pytest.mark.parametrize(
     "override, field",
     [
@@ -159,11 +157,13 @@ def test_bad_config_is_one_line_and_touches_nothing(reference, override, field):
     assert {p: p.stat().st_mtime_ns for p in reference.rglob("*")} == before  # nothing written or lost
 
 
+@pytest.mark.e2e
 def test_other_config_in_a_run_directory_with_a_checkpoint_is_rejected(reference):
     result = run(reference, "td3.lr=0.001")
     assert result.returncode != 0 and "td3.lr" in result.stderr and len(result.stderr.strip().splitlines()) == 1, result.stderr
 
 
+@pytest.mark.e2e
 def test_unwritable_output_directory_is_rejected(tmp_path):
     blocker = tmp_path / "file"
     blocker.write_text("")
@@ -171,9 +171,11 @@ def test_unwritable_output_directory_is_rejected(tmp_path):
     assert result.returncode != 0 and "hydra.run.dir" in result.stderr and len(result.stderr.strip().splitlines()) == 1
 
 
+@pytest.mark.e2e
 @pytest.mark.parametrize("where", ["es_mean", "td3_batch"])
 def test_injected_nan_stops_the_run_and_keeps_the_last_checkpoint(tmp_path, where):
-    result = run(tmp_path, "iterations=3", env={**ENV, "ESRL_INJECT_NAN": f"{where}@1"})
+    injected = [sys.executable, str(ROOT / "tests" / "inject_nan.py"), f"{where}@1", TINY, *RESUME, "iterations=3", f"hydra.run.dir={tmp_path}"]
+    result = subprocess.run(injected, cwd=ROOT, capture_output=True, text=True, timeout=900, env=ENV)
     assert result.returncode != 0
     lines = result.stderr.strip().splitlines()
     assert lines and lines[-1].startswith("numerical fault:") and "Traceback" not in result.stderr, result.stderr[-2000:]
@@ -189,3 +191,26 @@ def test_injected_nan_stops_the_run_and_keeps_the_last_checkpoint(tmp_path, wher
     result = run(tmp_path, "iterations=3")
     assert result.returncode == 0, result.stderr[-3000:]
     assert len(read_metrics(tmp_path / "metrics.csv")) == 3
+
+
+# The baselines resume too: a mid-phase checkpoint of TD3; iteration boundaries of ES and CEM-RL.
+BASELINES = [
+    ("td3.py", [], "checkpoint-000000000100"),
+    ("es.py", ["iterations=4"], "checkpoint-000000000001"),
+    ("cem_rl.py", ["iterations=4", "cem.population_size=4"], "checkpoint-000000000001"),
+]
+
+
+@pytest.mark.e2e
+@pytest.mark.parametrize("script, extra, first_checkpoint", BASELINES, ids=[b[0] for b in BASELINES])
+def test_baseline_killed_then_resumed_gives_the_same_metrics(tmp_path, script, extra, first_checkpoint):
+    reference = tmp_path / "reference"
+    result = run(reference, *extra, script=script)
+    assert result.returncode == 0, result.stderr[-3000:]
+    killed = tmp_path / "killed"
+    returncode = start_and_kill(killed, lambda: first_checkpoint in checkpoints(killed), 0.0, *extra, script=script)
+    assert returncode == -signal.SIGKILL
+    assert len(rows_without_wall_time(killed)) < len(rows_without_wall_time(reference))  # killed mid-run
+    result = run(killed, *extra, script=script)
+    assert result.returncode == 0, result.stderr[-3000:]
+    assert rows_without_wall_time(killed) == rows_without_wall_time(reference)

@@ -1,0 +1,152 @@
+"""One run lifecycle for every recipe (ES-TD3Buffers, TD3, OpenAI-ES, CEM-RL).
+
+``main = recipe_main(train, config_name=..., algorithm=...)`` gives a recipe's ``main``: Hydra
+composes ``conf/<config_name>.yaml``; the config is checked once, before Hydra writes into the
+run directory (:class:`ValidateBeforeRun`; in a multirun, each job checks its own); then
+``train(cfg, run)`` runs with a :class:`Run` that seeds, makes kernels deterministic, logs,
+evaluates, checkpoints at every iteration boundary and resumes from the run directory's last
+checkpoint. A config error or a numerical fault ends the run with one line on stderr, exit 2.
+"""
+from __future__ import annotations
+
+import functools
+import os
+import sys
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+import hydra
+from hydra.core.hydra_config import HydraConfig
+from hydra.experimental.callback import Callback
+from omegaconf import DictConfig, OmegaConf
+from tqdm.auto import tqdm
+
+from torchrl_esrl.errors import ConfigError
+from torchrl_esrl.run.checkpoint import CHECKPOINT_DIR, RunCheckpoint
+from torchrl_esrl.run.determinism import make_deterministic
+from torchrl_esrl.run.harness import RunHarness
+from torchrl_esrl.run.progress import RunProgress
+from torchrl_esrl.run.resume import prepare_run
+
+CONF_DIR = Path(__file__).resolve().parents[2] / "conf"
+
+
+class Run(RunHarness):
+    """The plumbing around a recipe's loop: the harness (seeding, metrics, evaluation, summary),
+    determinism, the loop's progress and the checkpoint.
+
+    A recipe builds its components, hands them to :meth:`resume`, then loops over
+    :meth:`iterations`; what the loop body logs is checkpointed after it.
+    """
+
+    def __init__(self, cfg: DictConfig, run_dir: Path, algorithm: str):
+        self.progress = RunProgress()  # iteration, TD3 frames, the TD3 phase under way, the resumable clock
+        super().__init__(cfg, run_dir, algorithm, clock=self.progress.wall_time)
+        make_deterministic()
+        self.checkpoint: RunCheckpoint | None = None
+
+    def resume(self, actor, **components) -> None:
+        """Evaluate ``actor``'s architecture; checkpoint ``components`` (name -> object with
+        ``state_dict``/``load_state_dict``) and restore them from the last checkpoint, if any."""
+        self.attach_actor(actor)
+        cfg = self.cfg
+        config = OmegaConf.to_container(cfg, resolve=True)
+        self.checkpoint = RunCheckpoint(self.run_dir, config, cfg.checkpoint.every_frames, cfg.checkpoint.keep_last, progress=self.progress, evaluator=self.evaluator, **components)
+        self.checkpoint.restore()
+
+    def iterations(self, desc: str) -> Iterator[int]:
+        """The outer loop from where the run stands; after each iteration's body, a checkpoint."""
+        first, total = self.progress.iteration, int(self.cfg.iterations)
+        for iteration in tqdm(range(first, total), desc=desc, unit="it", initial=first, total=total, disable=not self.cfg.logger.progress):
+            yield iteration
+            self.progress.finish_iteration()
+            self.checkpoint.save()
+
+    def checkpoint_mid_phase(self, *_) -> None:
+        """``td3_phase``'s ``on_batch`` hook: a checkpoint every ``checkpoint.every_frames`` TD3 frames."""
+        self.checkpoint.maybe_save_mid_phase()
+
+
+def recipe_main(train: Callable[[DictConfig, Run], dict], config_name: str, algorithm: str | Callable[[DictConfig], str]) -> Callable[[], None]:
+    """The ``main`` of a recipe whose loop is ``train(cfg, run)``; ``algorithm`` names it in ``summary.json``."""
+
+    @hydra.main(version_base="1.3", config_path=str(CONF_DIR), config_name=config_name)
+    @functools.wraps(train)  # Hydra names the job, and its log file, after the recipe's file
+    def main(cfg: DictConfig) -> None:
+        cfg, run_dir = _checked(cfg)
+        if cfg.logger.progress:
+            print(OmegaConf.to_yaml(cfg, resolve=True))
+        run = Run(cfg, run_dir, algorithm(cfg) if callable(algorithm) else algorithm)
+        try:
+            summary = train(cfg, run)
+        except FloatingPointError as fault:
+            _exit(f"numerical fault: {fault}; run stopped, last good checkpoint kept in {run_dir / CHECKPOINT_DIR}")
+        print(f"{summary['algorithm']}: final return {summary['final_return']:.1f} -> {run_dir}")
+
+    return functools.partial(run_cli, main)
+
+
+# ------------------------------------------------------------------ config checks, once a launch
+_prepared: list[tuple[DictConfig | None, Path]] = []  # what ValidateBeforeRun checked, for the task function
+
+
+class ValidateBeforeRun(Callback):
+    """Hydra callback: every check before Hydra creates or writes the run directory."""
+
+    def on_run_start(self, config, **kwargs: Any) -> None:
+        try:
+            cfg, run_dir = prepare_run(config, config.hydra.run.dir)
+        except ConfigError as error:
+            _exit(f"config error: {error}")  # Hydra turns a callback's exception into a warning: exit here
+        _prepared.append((cfg if config.resume else None, run_dir))
+
+
+def _checked(cfg: DictConfig) -> tuple[DictConfig, Path]:
+    """The config to run (the saved one on ``resume``) and the run directory."""
+    if _prepared:  # a single run, checked by ValidateBeforeRun
+        saved, run_dir = _prepared.pop()
+        return (cfg if saved is None else saved), run_dir
+    try:  # a multirun job
+        return prepare_run(cfg, HydraConfig.get().runtime.output_dir)
+    except ConfigError as error:
+        _exit(f"config error: {error}")
+
+
+def _exit(message: str) -> None:
+    print(message, file=sys.stderr)
+    raise SystemExit(2)
+
+
+def one_line(error: BaseException) -> str:
+    """A configuration error as one line: the field, the value and what is allowed."""
+    from omegaconf.errors import OmegaConfBaseException
+
+    cause = error
+    while cause.__cause__ is not None and not isinstance(cause, OmegaConfBaseException):
+        cause = cause.__cause__
+    message = str(cause).strip().splitlines()[0] if str(cause).strip() else type(cause).__name__
+    full_key = getattr(cause, "full_key", None)
+    if isinstance(cause, OmegaConfBaseException) and full_key and not message.startswith(str(full_key)):
+        message = f"{full_key}: {message}"
+    if cause is not error and str(error).strip():
+        message = f"{message} ({str(error).strip().splitlines()[0]})"
+    options = getattr(error, "options", None)  # hydra's MissingConfigException: a config group choice
+    if options:
+        message = f"{message} (allowed: {', '.join(sorted(options))})"
+    return message
+
+
+def run_cli(main) -> None:
+    """Call a ``@hydra.main`` function; config errors exit 2 with one line on stderr."""
+    from hydra.errors import HydraException
+    from omegaconf.errors import OmegaConfBaseException
+
+    full_error = os.environ.get("HYDRA_FULL_ERROR")
+    os.environ["HYDRA_FULL_ERROR"] = "1"  # let Hydra raise instead of printing a multi-line report
+    try:
+        main()
+    except (ConfigError, HydraException, OmegaConfBaseException) as error:
+        if full_error == "1":
+            raise
+        _exit(f"config error: {one_line(error)}")
