@@ -18,7 +18,6 @@ from pathlib import Path
 
 import torch
 from omegaconf import DictConfig
-from tqdm.auto import tqdm
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # run from a checkout without installing
 
@@ -41,7 +40,7 @@ def train(cfg: DictConfig, run_dir: Path) -> dict:
     harness.attach_actor(actor)
 
     frames, last_generation_frames = 0, 0
-    for iteration in tqdm(range(cfg.iterations), desc="CEM-RL", unit="it", disable=not cfg.logger.progress):
+    for iteration in harness.iterations(desc="CEM-RL"):
         iteration_frames, returns, critic_losses = 0, [], []
         while iteration_frames < cfg.td3.frames_per_iteration:
             population = cem.ask()

@@ -13,7 +13,6 @@ from pathlib import Path
 
 import torch
 from omegaconf import DictConfig
-from tqdm.auto import tqdm
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # run from a checkout without installing
 
@@ -28,7 +27,7 @@ def train(cfg: DictConfig, run_dir: Path) -> dict:
     es_collector = make_es_collector(cfg, actor)
     harness.attach_actor(actor)
 
-    for iteration in tqdm(range(cfg.iterations), desc="ES", unit="it", disable=not cfg.logger.progress):
+    for iteration in harness.iterations(desc="ES"):
         returns = []
         for _ in range(cfg.es.generations_per_iteration):
             generation = es_collector.evaluate(es.ask())

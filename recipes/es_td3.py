@@ -31,6 +31,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # run from a check
 
 from torchrl_esrl.algorithm.background_es import BackgroundES  # noqa: E402
 from torchrl_esrl.collectors.td3_collector import TD3EnvState  # noqa: E402
+from torchrl_esrl.run.console import final_lines, print_config  # noqa: E402
 from torchrl_esrl.run.checkpoint import RunCheckpoint, RunProgress, make_deterministic, prepare_run  # noqa: E402
 from torchrl_esrl.errors import ConfigError  # noqa: E402
 from torchrl_esrl.run.factories import (  # noqa: E402
@@ -182,12 +183,12 @@ def main(cfg: DictConfig) -> None:
         cfg, run_dir = prepare_run(cfg, HydraConfig.get().runtime.output_dir)  # checks; the saved config on resume
     except ConfigError as error:
         raise SystemExit(f"config error: {error}") from None
-    print(OmegaConf.to_yaml(cfg, resolve=True)) if cfg.logger.progress else None
+    print_config(cfg)  # only with logger.print_config=true; Hydra saves it in <run dir>/.hydra/
     try:
         summary = train(cfg, run_dir)
     except FloatingPointError as fault:
         raise SystemExit(f"numerical fault: {fault}; run stopped, last good checkpoint kept in {run_dir / 'checkpoints'}") from None
-    print(f"final ES mean return {summary['final_es_mean_return']:.1f}, TD3 actor return {summary['final_td3_actor_return']:.1f} -> {run_dir}")
+    print(final_lines(summary, run_dir))  # returns of the ES mean, TD3 actor, initial policy; where the files are
 
 
 if __name__ == "__main__":

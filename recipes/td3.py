@@ -13,7 +13,6 @@ from pathlib import Path
 
 import hydra
 from omegaconf import DictConfig
-from tqdm.auto import tqdm
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # run from a checkout without installing
 
@@ -35,7 +34,7 @@ def train(cfg: DictConfig, run_dir: Path) -> dict:
     harness.attach_actor(actor)
 
     td3_frames, episodes = 0, 0
-    for iteration in tqdm(range(cfg.iterations), desc="TD3", unit="it", disable=not cfg.logger.progress):
+    for iteration in harness.iterations(desc="TD3"):
         stats = td3_phase(cfg.td3.frames_per_iteration, td3_batches, td3, buffer, updates_per_frame=cfg.td3.updates_per_frame)
         td3_frames += stats["frames"]
         episodes += stats["episodes"]

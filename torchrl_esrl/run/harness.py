@@ -21,12 +21,16 @@ from pathlib import Path
 import hydra
 import torch
 from hydra.core.hydra_config import HydraConfig
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig
+from tqdm.auto import tqdm
 
 from torchrl_esrl.errors import ConfigError
 from torchrl_esrl.run.config import validate_config
 from torchrl_esrl.envs import quiet_logs
 from torchrl_esrl.collectors.es_collector import ESCollector
+from torchrl_esrl.modules.networks import flat_parameters
+from torchrl_esrl.report import plot_run
+from torchrl_esrl.run.console import final_lines, print_config
 from torchrl_esrl.run.factories import seed_everything
 from torchrl_esrl.run.metrics import CORE_COLUMNS, MetricsLog, write_json
 from torchrl_esrl.run.schema import run_cli
@@ -56,6 +60,8 @@ class RunHarness:
         extra = [c for c in columns if c not in CORE_COLUMNS]
         self.log_ = MetricsLog(self.run_dir, backend=cfg.logger.backend, experiment_name=cfg.experiment_name, columns=(*CORE_COLUMNS, *extra))
         self.evaluator: ESCollector | None = None
+        self.initial_return: float | None = None  # set by attach_actor
+        self.bar = None  # set by iterations
         self.last_row: dict = {}
 
     @property
@@ -63,9 +69,22 @@ class RunHarness:
         return round(self.clock(), 2)
 
     def attach_actor(self, actor) -> None:
-        """Build the evaluator for ``actor``'s architecture (its own episode-seed stream)."""
+        """Build the evaluator for ``actor``'s architecture (its own episode-seed stream), and
+        evaluate ``actor`` as built, before any training, with the protocol of the final evaluation
+        (``eval.final_episodes`` deterministic episodes): ``initial_return`` in ``summary.json``,
+        the baseline the returned policy is compared with. Its episodes have their own seeds, so
+        the evaluation stream of the run is the same with or without it."""
         cfg = self.cfg
         self.evaluator = ESCollector(cfg.env.id, actor, backend="gym", max_episode_steps=cfg.env.max_episode_steps, seed=int(cfg.seed) + 1000)
+        episodes = int(cfg.eval.final_episodes)
+        seeds = [int(cfg.seed) + 1_000_000 + i for i in range(episodes)]  # fixed episode seeds: the evaluation stream is not drawn from
+        self.initial_return = self.evaluator.evaluate_policy(flat_parameters(actor).detach().cpu(), episodes, seeds=seeds).returns.mean().item()
+
+    def iterations(self, desc: str):
+        """``range(iterations)`` behind a progress bar (``logger.progress``) that shows the returned
+        policy's last evaluation; :meth:`log` updates it."""
+        self.bar = tqdm(range(self.cfg.iterations), desc=desc, unit="it", disable=not self.cfg.logger.progress)
+        return self.bar
 
     def evaluate(self, vector: torch.Tensor, episodes: int | None = None) -> float:
         """Mean return of the deterministic actor with flat parameters ``vector``."""
@@ -87,6 +106,8 @@ class RunHarness:
         }
         self.log_.log(row)
         self.last_row = row
+        if self.bar is not None:
+            self.bar.set_postfix_str(f"return {eval_return:.1f} (initial {self.initial_return:.1f})")
         return row
 
     def finish(self, returned: torch.Tensor, extra: Mapping | None = None, alias: str | None = None) -> dict:
@@ -110,8 +131,10 @@ class RunHarness:
         }
         if alias:
             summary[alias] = summary["final_return"]
+        summary["initial_return"] = self.initial_return
         summary["wall_time_s"] = self.wall_time_s
         write_json(self.run_dir / "summary.json", summary)
+        plot_run(self.run_dir)  # learning_curve.png
         return summary
 
 
@@ -131,12 +154,11 @@ def hydra_main(train: Callable[[DictConfig, Path], dict], config_name: str) -> C
         except ConfigError as error:
             raise SystemExit(f"config error: {error}") from None
         run_dir = Path(HydraConfig.get().runtime.output_dir)
-        if cfg.logger.progress:
-            print(OmegaConf.to_yaml(cfg, resolve=True))
+        print_config(cfg)
         try:
             summary = train(cfg, run_dir)
         except FloatingPointError as fault:
             raise SystemExit(f"numerical fault: {fault}; run stopped") from None
-        print(f"{summary['algorithm']}: final return {summary['final_return']:.1f} -> {run_dir}")
+        print(final_lines(summary, run_dir))
 
     return functools.partial(run_cli, main)

@@ -98,6 +98,7 @@ class EvalConfig:
 class LoggerConfig:
     backend: str = MISSING
     progress: bool = MISSING
+    print_config: bool = MISSING
 
 
 @dataclass
@@ -211,3 +212,8 @@ def run_cli(main) -> None:
             raise
         print(f"config error: {one_line(error)}", file=sys.stderr)
         raise SystemExit(2) from None
+    finally:
+        if full_error is None:
+            os.environ.pop("HYDRA_FULL_ERROR", None)
+        else:
+            os.environ["HYDRA_FULL_ERROR"] = full_error
