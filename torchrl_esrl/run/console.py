@@ -38,8 +38,10 @@ def final_lines(summary: dict, run_dir: str | Path) -> str:
         rows.append(("initial policy (before training)", summary["initial_return"]))
     width = max(len(name) for name, _ in rows)
     lines = [
-        f"{summary['algorithm']} on {summary['env']}, seed {summary['seed']}: {summary['iterations']} iterations, "
-        f"{summary['td3_frames']} TD3 frames + {summary['es_frames']} ES frames, {summary['wall_time_s'] / 60:.1f} min",
+        (
+            f"{summary['algorithm']} on {summary['env']}, seed {summary['seed']}: {summary['iterations']} iterations, "
+            f"{summary['td3_frames']} TD3 frames + {summary['es_frames']} ES frames, {summary['wall_time_s'] / 60:.1f} min"
+        ),
         f"mean return over {episodes} deterministic episodes:",
         *(f"  {name:<{width}}  {value:9.1f}" for name, value in rows),
     ]

@@ -31,7 +31,7 @@ from torchrl_esrl.collectors.es_collector import ESCollector
 from torchrl_esrl.modules.networks import flat_parameters
 from torchrl_esrl.report import plot_run
 from torchrl_esrl.run.console import final_lines, print_config
-from torchrl_esrl.run.factories import seed_everything
+from torchrl_esrl.run.factories import cpu_actor, seed_everything
 from torchrl_esrl.run.metrics import CORE_COLUMNS, MetricsLog, write_json
 from torchrl_esrl.run.schema import run_cli
 
@@ -75,7 +75,7 @@ class RunHarness:
         the baseline the returned policy is compared with. Its episodes have their own seeds, so
         the evaluation stream of the run is the same with or without it."""
         cfg = self.cfg
-        self.evaluator = ESCollector(cfg.env.id, actor, backend="gym", max_episode_steps=cfg.env.max_episode_steps, seed=int(cfg.seed) + 1000)
+        self.evaluator = ESCollector(cfg.env.id, cpu_actor(actor), backend="gym", max_episode_steps=cfg.env.max_episode_steps, seed=int(cfg.seed) + 1000)
         episodes = int(cfg.eval.final_episodes)
         seeds = [int(cfg.seed) + 1_000_000 + i for i in range(episodes)]  # fixed episode seeds: the evaluation stream is not drawn from
         self.initial_return = self.evaluator.evaluate_policy(flat_parameters(actor).detach().cpu(), episodes, seeds=seeds).returns.mean().item()
@@ -91,7 +91,7 @@ class RunHarness:
         if self.evaluator is None:
             raise RuntimeError("RunHarness.attach_actor must be called before evaluate")
         episodes = int(episodes or self.cfg.eval.episodes)
-        return self.evaluator.evaluate_policy(vector.detach(), episodes).returns.mean().item()
+        return self.evaluator.evaluate_policy(vector.detach().cpu(), episodes).returns.mean().item()
 
     def log(self, iteration: int, td3_frames: int, es_frames: int, eval_return: float, **extra) -> dict:
         """One checkpoint row of ``metrics.csv`` (and of the TorchRL logger)."""
