@@ -55,3 +55,26 @@ def test_print_config_shows_the_resolved_config(tmp_path):
     )
     assert result.returncode == 0, result.stderr[-3000:]
     assert "population_size: 10" in result.stdout and "id: InvertedPendulum-v5" in result.stdout
+
+
+def test_quiet_logs_silences_exactly_the_two_messages(tmp_path, monkeypatch, capfd):
+    import gymnasium as gym
+    import torch
+    from tensordict import TensorDict
+    from torchrl._utils import logger as torchrl_logger
+    from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
+
+    from torchrl_esrl.envs import quiet_logs
+
+    monkeypatch.chdir(tmp_path)
+    quiet_logs()
+    env = gym.make("HalfCheetah-v5")  # its model compile warns about 'settotalmass'
+    env.reset(seed=0)
+    buffer = TensorDictReplayBuffer(storage=LazyTensorStorage(10))
+    buffer.extend(TensorDict({"x": torch.zeros(4, 2)}, batch_size=[4]))  # TorchRL logs the storage's shape at INFO
+    torchrl_logger.info("another TorchRL message")
+    captured = capfd.readouterr()
+    console = captured.out + captured.err
+    assert "settotalmass" not in console and not (tmp_path / "MUJOCO_LOG.TXT").exists()
+    assert "Initialized LazyTensorStorage" not in console
+    assert "another TorchRL message" in console  # other messages still come through
