@@ -10,6 +10,7 @@ from __future__ import annotations
 import importlib.util
 import math
 import os
+from collections.abc import Mapping
 from pathlib import Path
 
 from torchrl_esrl.errors import ConfigError
@@ -117,6 +118,11 @@ def validate_config(cfg) -> None:
     _positive(cfg, "ray.num_workers", integer=True)
     _positive(cfg, "ray.num_cpus_per_worker")
     _choice(cfg, "ray.worker_backend", ["auto", *LOCAL_BACKENDS])
+    address = cfg.ray.address
+    if address is not None and address != "auto" and not _is_host_port(address):
+        raise ConfigError(f"ray.address: {address!r} is invalid (allowed: null to start Ray here, auto, or host:port)")
+    if not isinstance(cfg.ray.worker_kwargs, Mapping):
+        raise ConfigError(f"ray.worker_kwargs: {cfg.ray.worker_kwargs!r} is invalid (allowed: a mapping of keyword arguments, e.g. {{}})")
 
     # MultiBuffer (Section 3.1), threshold, overwrite rule (Section 3.2)
     validate_ratio(cfg.buffer.ratio)
@@ -147,6 +153,11 @@ def validate_config(cfg) -> None:
         for field in ("cem.damping_init", "cem.damping_end"):
             _number(cfg, field, low=0)
         _number(cfg, "cem.damping_tau", low=0, high=1)
+
+
+def _is_host_port(address) -> bool:
+    host, _, port = str(address).rpartition(":")
+    return bool(host) and port.isdigit() and 0 < int(port) < 65536
 
 
 def _package(field: str, value: str, package: str) -> None:
