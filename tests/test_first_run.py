@@ -2,9 +2,9 @@
 ES mean beats the initial policy, the ES mean took part, the console is quiet and its last lines
 say the returns and where the files and the plot are."""
 import json
-from itertools import pairwise
 import subprocess
 import sys
+from itertools import pairwise
 from pathlib import Path
 
 from torchrl_esrl.run.metrics import read_metrics
@@ -58,6 +58,8 @@ def test_print_config_shows_the_resolved_config(tmp_path):
 
 
 def test_quiet_logs_silences_exactly_the_two_messages(tmp_path, monkeypatch, capfd):
+    import logging
+
     import gymnasium as gym
     import torch
     from tensordict import TensorDict
@@ -65,8 +67,6 @@ def test_quiet_logs_silences_exactly_the_two_messages(tmp_path, monkeypatch, cap
     from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
 
     from torchrl_esrl.envs import quiet_logs
-
-    import logging
 
     class Records(logging.Handler):  # what reaches TorchRL's handlers (its console handler holds the stdout of import time)
         def __init__(self):
