@@ -125,6 +125,14 @@ def test_report_table_matches_the_runs_and_writes_figures(runs, tmp_path):
         assert png[:8] == b"\x89PNG\r\n\x1a\n" and len(png) > 10_000, name
 
 
+@pytest.mark.parametrize("name", ["td3_0", "es_0", "cem_0", "shared_0", "sweep/0"])
+def test_every_recipe_writes_its_learning_curve_and_initial_return(runs, name):
+    _, summary = load(runs / name)
+    png = (runs / name / "learning_curve.png").read_bytes()
+    assert png[:8] == b"\x89PNG\r\n\x1a\n" and len(png) > 10_000
+    assert math.isfinite(summary["initial_return"])  # the initial actor, evaluated as the final one is
+
+
 def test_tensorboard_backend_writes_event_files(run_recipe, tmp_path):
     pytest.importorskip("tensorboard")
     run_ok(run_recipe, "es.py", "iterations=1", "es.generations_per_iteration=1", "logger.backend=tensorboard", f"hydra.run.dir={tmp_path}")

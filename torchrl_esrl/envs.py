@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import difflib
 import logging
+import sys
 
 import gymnasium as gym
 from torchrl_esrl.errors import ConfigError
@@ -37,9 +38,34 @@ def resolve_env_id(name: str) -> str:
     raise ConfigError(f"env.id: unknown environment '{name}'{hint} (allowed: {', '.join(known)} or any gymnasium id)")
 
 
+# Messages that say nothing to a user of this package, silenced at their source and nowhere else:
+# MuJoCo's compiler deprecation of an attribute the gymnasium v5 models use (printed by the C library,
+# and appended to MUJOCO_LOG.TXT in the working directory, at every model compile), and TorchRL's
+# INFO line at every replay-buffer storage allocation.
+MUJOCO_SILENCED = ("compiler attribute 'settotalmass' is deprecated",)
+TORCHRL_SILENCED = ("Initialized LazyTensorStorage with", "Initialized LazyMemmapStorage with")
+
+
+def _mujoco_warning(message: str) -> None:
+    """MuJoCo's user warning handler: the silenced messages are dropped, every other one is printed
+    as MuJoCo's default handler prints it."""
+    if not any(text in message for text in MUJOCO_SILENCED):
+        print(f"WARNING: {message}", file=sys.stderr, flush=True)
+
+
+def _torchrl_record(record: logging.LogRecord) -> bool:
+    return not any(str(record.msg).startswith(text) for text in TORCHRL_SILENCED)
+
+
 def quiet_logs() -> None:
-    """Keep the console for the progress bar: TorchRL's storage INFO lines go to WARNING level."""
-    logging.getLogger("torchrl").setLevel(logging.WARNING)
+    """Keep the console for the progress bar (called once at start-up by every recipe, through
+    :class:`~torchrl_esrl.run.harness.RunHarness`): drop exactly the messages listed above."""
+    import mujoco
+
+    mujoco.set_mju_user_warning(_mujoco_warning)
+    torchrl_logger = logging.getLogger("torchrl")
+    if _torchrl_record not in torchrl_logger.filters:
+        torchrl_logger.addFilter(_torchrl_record)
 
 
 def make_gym_env(env_id: str, max_episode_steps: int | None = None) -> gym.Env:

@@ -248,10 +248,51 @@ def plot_learning_curves(runs: list[dict], out_dir: Path) -> list[Path]:
     return paths
 
 
+# What each algorithm returns, for the per-run figure when its metrics have no TD3/ES columns.
+RETURNED_POLICY = {"td3": "TD3 actor", "es": "ES mean", "cem_rl": "CEM mean"}
+
+
+def _draw_es_vs_td3(ax, run: dict) -> None:
+    """One run's panel: TD3 actor and ES mean per iteration (ES-TD3 runs; other algorithms: the
+    returned policy), the initial policy's return if recorded, overwrites as red dashed lines."""
+    from matplotlib.ticker import MaxNLocator
+
+    rows, summary = run["metrics"], run["summary"]
+    iterations = [row["iteration"] for row in rows]
+    if "td3_eval_return" in rows[0]:
+        ax.plot(iterations, [row["td3_eval_return"] for row in rows], marker="o", markersize=3, label="TD3 actor")
+        ax.plot(iterations, [row["es_eval_return"] for row in rows], marker="s", markersize=3, label="ES mean")
+    else:
+        name = RETURNED_POLICY.get(summary["algorithm"], "returned policy")
+        ax.plot(iterations, [row["eval_return"] for row in rows], marker="o", markersize=3, label=name)
+    if summary.get("initial_return") is not None:
+        ax.axhline(summary["initial_return"], color="grey", linestyle=":", label="initial policy")
+    overwritten = [row["iteration"] for row in rows if row.get("overwritten") is True]
+    for i, it in enumerate(overwritten):
+        ax.axvline(it, color="red", linestyle="--", alpha=0.6, label="ES mean overwritten" if i == 0 else None)
+    ax.set_xlabel("iteration")
+    ax.xaxis.set_major_locator(MaxNLocator(integer=True))
+    ax.grid(alpha=0.3)
+
+
+def plot_run(run_dir) -> Path:
+    """``learning_curve.png`` in one run directory (every recipe, at the end of its run): the
+    deterministic evaluations per iteration as in :func:`plot_es_vs_td3`, overwrites marked."""
+    plt = _pyplot()
+    run_dir = Path(run_dir)
+    summary = json.loads((run_dir / "summary.json").read_text())
+    run = {"summary": summary, "metrics": read_metrics(run_dir / "metrics.csv"), "dir": run_dir}
+    fig, ax = plt.subplots(figsize=(6, 4))
+    _draw_es_vs_td3(ax, run)
+    ax.set_ylabel("evaluation return (deterministic)")
+    ax.set_title(f"{summary['env']}, seed {summary['seed']}: {label(summary['algorithm'], ratio_text(summary))}", fontsize=10)
+    ax.legend(fontsize=8, loc="best")
+    return _save(fig, run_dir / "learning_curve.png")
+
+
 def plot_es_vs_td3(runs: list[dict], out_dir: Path) -> list[Path]:
     """Per env, ES-TD3Buffers' TD3 actor vs ES mean per iteration, one panel per run; overwrites marked."""
     plt = _pyplot()
-    from matplotlib.ticker import MaxNLocator
 
     paths = []
     by_env: dict[str, list[dict]] = defaultdict(list)
@@ -262,17 +303,8 @@ def plot_es_vs_td3(runs: list[dict], out_dir: Path) -> list[Path]:
         group = sorted(group, key=lambda r: (ratio_text(r["summary"]), r["summary"]["seed"]))
         fig, axes = plt.subplots(1, len(group), figsize=(4 * len(group), 3.6), squeeze=False, sharey=True)
         for ax, run in zip(axes[0], group):
-            rows = run["metrics"]
-            iterations = [row["iteration"] for row in rows]
-            ax.plot(iterations, [row["td3_eval_return"] for row in rows], marker="o", markersize=3, label="TD3 actor")
-            ax.plot(iterations, [row["es_eval_return"] for row in rows], marker="s", markersize=3, label="ES mean")
-            overwritten = [row["iteration"] for row in rows if row.get("overwritten") is True]
-            for i, it in enumerate(overwritten):
-                ax.axvline(it, color="red", linestyle="--", alpha=0.6, label="ES mean overwritten" if i == 0 else None)
+            _draw_es_vs_td3(ax, run)
             ax.set_title(f"seed {run['summary']['seed']}, ratio {ratio_text(run['summary'])}", fontsize=9)
-            ax.set_xlabel("iteration")
-            ax.xaxis.set_major_locator(MaxNLocator(integer=True))
-            ax.grid(alpha=0.3)
         axes[0][0].set_ylabel("evaluation return")
         handles, labels = [], []
         for ax in axes[0]:

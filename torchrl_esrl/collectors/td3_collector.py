@@ -7,14 +7,18 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.collectors import Collector
 
 
-def make_td3_collector(env, td3, frames_per_batch: int = 1) -> Collector:
-    """TorchRL collector acting with the exploration policy; runs for as long as it is iterated."""
+def make_td3_collector(env, td3, frames_per_batch: int = 1, device="cpu") -> Collector:
+    """TorchRL collector acting with the exploration policy; runs for as long as it is iterated.
+    The env steps on its own device (CPU physics), the policy and the collected data are on ``device``."""
     return Collector(
         env,
         td3.exploration_policy,
         frames_per_batch=int(frames_per_batch),
         total_frames=-1,
         auto_register_policy_transforms=False,
+        env_device=env.device,
+        policy_device=device,
+        storing_device=device,
     )
 
 

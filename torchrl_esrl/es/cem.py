@@ -104,4 +104,4 @@ def td3_improve_member(td3, buffer, vector: torch.Tensor, updates: int) -> tuple
     actor) on batches of ``buffer``; returns the trained flat parameters and the critic losses."""
     load_actor_and_target(td3, vector)
     critic_losses = [td3.update(buffer.sample())["critic_loss"] for _ in range(int(updates))]
-    return flat_parameters(td3.actor), critic_losses
+    return flat_parameters(td3.actor).to(vector.device), critic_losses  # back to where the population lives (CPU)

@@ -65,7 +65,8 @@ def flat_parameters(actor: nn.Module) -> torch.Tensor:
 @torch.no_grad()
 def load_flat_parameters(actor: nn.Module, vector: torch.Tensor) -> None:
     """Copy ``vector`` into the actor's parameters, in place (optimiser references stay valid)."""
-    vector_to_parameters(vector.to(next(actor.parameters()).dtype), actor.parameters())
+    reference = next(actor.parameters())
+    vector_to_parameters(vector.to(device=reference.device, dtype=reference.dtype), actor.parameters())
 
 
 class PopulationActor:

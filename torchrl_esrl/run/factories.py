@@ -5,6 +5,8 @@ TorchRL's ``sota-implementations``; recipes stay a readable transcription of Alg
 """
 from __future__ import annotations
 
+import copy
+
 import torch
 from omegaconf import DictConfig
 
@@ -25,12 +27,21 @@ def make_train_env(cfg: DictConfig):
 
 
 def make_actor_critic(cfg: DictConfig, env):
-    """The paper's actor (2x256 tanh) and the critic template TD3 duplicates into twin critics."""
+    """The paper's actor (2x256 tanh) and the critic template TD3 duplicates into twin critics,
+    on ``cfg.device`` (TD3's side; ES evaluates populations on CPU, see :func:`cpu_actor`)."""
     observation_dim = env.observation_spec["observation"].shape[-1]
     action_dim = env.action_spec.shape[-1]
     actor = make_actor(observation_dim, env.action_spec, tuple(cfg.actor.hidden), cfg.actor.activation)
     critic = make_critic(observation_dim, action_dim, tuple(cfg.td3.critic_hidden), cfg.td3.critic_activation)
-    return actor, critic
+    return actor.to(cfg.device), critic.to(cfg.device)
+
+
+def cpu_actor(actor):
+    """``actor`` itself on CPU, else a CPU copy: the template of ES populations and evaluations,
+    whose physics (and batched forward) run on CPU whatever device TD3 trains on."""
+    if all(p.device.type == "cpu" for p in actor.parameters()):
+        return actor
+    return copy.deepcopy(actor).to("cpu")
 
 
 def make_td3(cfg: DictConfig, actor, critic, action_spec) -> TD3:
@@ -38,7 +49,7 @@ def make_td3(cfg: DictConfig, actor, critic, action_spec) -> TD3:
     return TD3(
         actor,
         critic,
-        action_spec,
+        action_spec.to(cfg.device),
         lr=c.lr,
         gamma=c.gamma,
         tau=c.tau,
@@ -53,7 +64,7 @@ def make_td3(cfg: DictConfig, actor, critic, action_spec) -> TD3:
 
 def make_td3_batches(cfg: DictConfig, env, td3: TD3):
     """The TD3 collector and an iterator over it that lives across iterations."""
-    collector = make_td3_collector(env, td3, cfg.td3.frames_per_batch)
+    collector = make_td3_collector(env, td3, cfg.td3.frames_per_batch, device=cfg.device)
     return collector, iter(collector)
 
 
@@ -76,7 +87,7 @@ def make_es(cfg: DictConfig, actor) -> OpenES:
     """OpenAI-ES whose mean starts at the (randomly initialised, near 0) actor's parameters."""
     c = cfg.es
     return OpenES(
-        flat_parameters(actor),
+        flat_parameters(actor).cpu(),  # the ES mean lives on CPU, where populations are evaluated
         population_size=c.population_size,
         sigma=c.sigma,
         lr=c.lr,
@@ -93,7 +104,7 @@ def make_cem(cfg: DictConfig, actor):
 
     c = cfg.cem
     return DiagonalCEM(
-        flat_parameters(actor),
+        flat_parameters(actor).cpu(),
         population_size=c.population_size,
         sigma_init=c.sigma_init,
         elite_fraction=c.elite_fraction,
@@ -110,7 +121,7 @@ def make_es_collector(cfg: DictConfig, actor) -> ESCollector:
         from torchrl_esrl.collectors.ray_backend import ray_backend_kwargs
 
         backend_kwargs = ray_backend_kwargs(cfg)
-    return ESCollector(cfg.env.id, actor, backend=cfg.es.backend, max_episode_steps=cfg.env.max_episode_steps, seed=int(cfg.seed) + 2, **backend_kwargs)
+    return ESCollector(cfg.env.id, cpu_actor(actor), backend=cfg.es.backend, max_episode_steps=cfg.env.max_episode_steps, seed=int(cfg.seed) + 2, **backend_kwargs)
 
 
 def make_threshold(cfg: DictConfig) -> Threshold:

@@ -22,7 +22,10 @@ from omegaconf import DictConfig
 
 from torchrl_esrl.envs import quiet_logs
 from torchrl_esrl.collectors.es_collector import ESCollector
+from torchrl_esrl.modules.networks import flat_parameters
+from torchrl_esrl.report import plot_run
 from torchrl_esrl.run.determinism import seed_everything
+from torchrl_esrl.run.factories import cpu_actor
 from torchrl_esrl.run.metrics import MetricsLog, write_json
 
 
@@ -48,6 +51,8 @@ class RunHarness:
         self.clock = clock or (lambda: time.perf_counter() - start)
         self.log_ = MetricsLog(self.run_dir, backend=cfg.logger.backend, experiment_name=cfg.experiment_name)
         self.evaluator: ESCollector | None = None
+        self.initial_return: float | None = None  # set by attach_actor
+        self.bar = None  # the progress bar, set by Run.iterations
         self.last_row: dict = {}
 
     @property
@@ -55,16 +60,23 @@ class RunHarness:
         return round(self.clock(), 2)
 
     def attach_actor(self, actor) -> None:
-        """Build the evaluator for ``actor``'s architecture (its own episode-seed stream)."""
+        """Build the evaluator for ``actor``'s architecture (its own episode-seed stream), and
+        evaluate ``actor`` as built, before any training, with the protocol of the final evaluation
+        (``eval.final_episodes`` deterministic episodes): ``initial_return`` in ``summary.json``,
+        the baseline the returned policy is compared with. Its episodes have their own seeds, so
+        the evaluation stream of the run is the same with or without it."""
         cfg = self.cfg
-        self.evaluator = ESCollector(cfg.env.id, actor, backend="gym", max_episode_steps=cfg.env.max_episode_steps, seed=int(cfg.seed) + 1000)
+        self.evaluator = ESCollector(cfg.env.id, cpu_actor(actor), backend="gym", max_episode_steps=cfg.env.max_episode_steps, seed=int(cfg.seed) + 1000)
+        episodes = int(cfg.eval.final_episodes)
+        seeds = [int(cfg.seed) + 1_000_000 + i for i in range(episodes)]  # fixed episode seeds: the evaluation stream is not drawn from
+        self.initial_return = self.evaluator.evaluate_policy(flat_parameters(actor).detach().cpu(), episodes, seeds=seeds).returns.mean().item()
 
     def evaluate(self, vector: torch.Tensor, episodes: int | None = None) -> float:
         """Mean return of the deterministic actor with flat parameters ``vector``."""
         if self.evaluator is None:
             raise RuntimeError("RunHarness.attach_actor must be called before evaluate")
         episodes = int(episodes or self.cfg.eval.episodes)
-        return self.evaluator.evaluate_policy(vector.detach(), episodes).returns.mean().item()
+        return self.evaluator.evaluate_policy(vector.detach().cpu(), episodes).returns.mean().item()
 
     def log(self, iteration: int, td3_frames: int, es_frames: int, eval_return: float, **extra) -> dict:
         """One row of ``metrics.csv`` (and of the TorchRL logger): the core columns, then ``extra``
@@ -80,6 +92,8 @@ class RunHarness:
         }
         self.log_.log(row)
         self.last_row = row
+        if self.bar is not None:
+            self.bar.set_postfix_str(f"return {eval_return:.1f} (initial {self.initial_return:.1f})")
         return row
 
     def finish(self, returned: torch.Tensor, extra: Mapping | None = None, alias: str | None = None) -> dict:
@@ -103,6 +117,8 @@ class RunHarness:
         }
         if alias:
             summary[alias] = summary["final_return"]
+        summary["initial_return"] = self.initial_return
         summary["wall_time_s"] = self.wall_time_s
         write_json(self.run_dir / "summary.json", summary)
+        plot_run(self.run_dir)  # learning_curve.png
         return summary

@@ -24,6 +24,7 @@ from tqdm.auto import tqdm
 
 from torchrl_esrl.errors import ConfigError
 from torchrl_esrl.run.checkpoint import CHECKPOINT_DIR, RunCheckpoint
+from torchrl_esrl.run.console import final_lines, print_config
 from torchrl_esrl.run.determinism import make_deterministic
 from torchrl_esrl.run.harness import RunHarness
 from torchrl_esrl.run.progress import RunProgress
@@ -58,7 +59,8 @@ class Run(RunHarness):
     def iterations(self, desc: str) -> Iterator[int]:
         """The outer loop from where the run stands; after each iteration's body, a checkpoint."""
         first, total = self.progress.iteration, int(self.cfg.iterations)
-        for iteration in tqdm(range(first, total), desc=desc, unit="it", initial=first, total=total, disable=not self.cfg.logger.progress):
+        self.bar = tqdm(range(first, total), desc=desc, unit="it", initial=first, total=total, disable=not self.cfg.logger.progress)
+        for iteration in self.bar:
             yield iteration
             self.progress.finish_iteration()
             self.checkpoint.save()
@@ -75,14 +77,13 @@ def recipe_main(train: Callable[[DictConfig, Run], dict], config_name: str, algo
     @functools.wraps(train)  # Hydra names the job, and its log file, after the recipe's file
     def main(cfg: DictConfig) -> None:
         cfg, run_dir = _checked(cfg)
-        if cfg.logger.progress:
-            print(OmegaConf.to_yaml(cfg, resolve=True))
+        print_config(cfg)  # only with logger.print_config=true; Hydra saves it in <run dir>/.hydra/
         run = Run(cfg, run_dir, algorithm(cfg) if callable(algorithm) else algorithm)
         try:
             summary = train(cfg, run)
         except FloatingPointError as fault:
             _exit(f"numerical fault: {fault}; run stopped, last good checkpoint kept in {run_dir / CHECKPOINT_DIR}")
-        print(f"{summary['algorithm']}: final return {summary['final_return']:.1f} -> {run_dir}")
+        print(final_lines(summary, run_dir))  # returns of the returned, TD3 and initial policies; where the files are
 
     return functools.partial(run_cli, main)
 
@@ -150,3 +151,8 @@ def run_cli(main) -> None:
         if full_error == "1":
             raise
         _exit(f"config error: {one_line(error)}")
+    finally:  # leave the environment as it was (a caller's later Hydra errors print normally)
+        if full_error is None:
+            os.environ.pop("HYDRA_FULL_ERROR", None)
+        else:
+            os.environ["HYDRA_FULL_ERROR"] = full_error

@@ -90,6 +90,7 @@ class EvalConfig:
 class LoggerConfig:
     backend: str = MISSING
     progress: bool = MISSING
+    print_config: bool = MISSING
 
 
 @dataclass
