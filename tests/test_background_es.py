@@ -5,7 +5,7 @@ import threading
 import pytest
 import torch
 
-from torchrl_esrl.algorithm.background_es import BackgroundES, Guarded
+from torchrl_esrl.algorithm.background_es import Guarded
 from torchrl_esrl.algorithm.es_phase import ESPhase
 from torchrl_esrl.data.multibuffer import MultiBuffer
 from torchrl_esrl.envs import make_env
@@ -24,10 +24,16 @@ def swimmer_parts(generations=3):
     return es, collector, buffer, Threshold(0.9), generations
 
 
+def in_background(es, collector, buffer, threshold, generations):
+    """The BackgroundES of an async ES phase, with the lock-guarded buffer and threshold."""
+    phase = ESPhase(es, collector, buffer, threshold, generations, shared_buffer=False, background=True)
+    return phase.background, phase.buffer, phase.threshold
+
+
 def test_background_generations_overlap_the_main_thread_and_route_every_transition():
     es, collector, buffer, threshold, generations = swimmer_parts()
     mean_before = es.mean.detach().clone()
-    background, buffer, threshold = BackgroundES.wrap(es, collector, buffer, threshold, generations)
+    background, buffer, threshold = in_background(es, collector, buffer, threshold, generations)
     noisy = collector.evaluate_policy(mean_before, 1, seeds=[0]).transitions  # stand-in TD3 batch, 50 transitions
     main_steps_while_es_ran = 0
     background.start()
@@ -51,7 +57,7 @@ def test_background_generations_overlap_the_main_thread_and_route_every_transiti
 def test_errors_in_the_es_thread_surface_at_join():
     es, collector, buffer, threshold, _ = swimmer_parts()
     es = OpenES(torch.zeros(es.num_parameters + 1), population_size=4)  # wrong size: the collector rejects it in the thread
-    background, _, _ = BackgroundES.wrap(es, collector, buffer, threshold, 1)
+    background, _, _ = in_background(es, collector, buffer, threshold, 1)
     background.start()
     with pytest.raises(ValueError, match="parameters per member"):
         background.join()

@@ -1,12 +1,7 @@
-<<<<<<< HEAD:tests/test_lifecycle.py
 """The run lifecycle (torchrl_esrl/run/lifecycle.py) on the real recipes in real subprocesses:
 determinism, SIGKILL then resume for every recipe, bad configs as one line, and NaN faults that
 stop the run and keep the last checkpoint loadable."""
-=======
-"""Issue #5 on the real recipe in real subprocesses: determinism, SIGKILL then resume, bad configs
-as one line, and NaN faults that stop the run and keep the last checkpoint loadable."""
 import importlib.util
->>>>>>> firstrun:tests/test_resume.py
 import os
 import signal
 import subprocess
@@ -15,6 +10,7 @@ import time
 from pathlib import Path
 
 import pytest
+import torch
 from conftest import ROOT, TINY, recipe_command
 
 from torchrl_esrl.run.metrics import read_metrics

@@ -19,11 +19,11 @@ from __future__ import annotations
 
 import functools
 import threading
+from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
 
 import torch
 
-from torchrl_esrl.algorithm.es_phase import es_phase
 
 
 class Guarded:
@@ -62,37 +62,33 @@ class Guarded:
 
 
 class BackgroundES:
-    """Runs an iteration's ES generations in a background thread.
+    """Runs an iteration's ES generations (``work``, a call of :func:`~torchrl_esrl.algorithm.es_phase.es_phase`)
+    in a background thread. :class:`~torchrl_esrl.algorithm.es_phase.ESPhase` builds it::
 
-    Build it with :meth:`wrap`, which also returns the guarded buffer and threshold that *both*
-    halves must use from then on::
-
-        background_es, buffer, threshold = BackgroundES.wrap(es, es_collector, buffer, threshold, g)
-        background_es.start()                       # ES generations from the current mean ...
+        buffer, threshold = BackgroundES.guard(buffer, threshold)  # both halves use these from then on
+        background = BackgroundES(functools.partial(es_phase, es, es_collector, buffer, threshold, g))
+        background.start()                          # ES generations from the current mean ...
         td3_phase(..., buffer, on_episode=threshold.observe)   # ... while TD3 trains
-        generation_returns = background_es.join()   # iteration boundary: evaluate, overwrite rule
+        generation_returns = background.join()      # iteration boundary: evaluate, overwrite rule
 
     Between ``start`` and ``join`` the ES object and the ES collector belong to the thread.
     """
 
-    def __init__(self, es, es_collector, buffer, threshold, generations: int, shared_buffer: bool = False):
-        self.es, self.es_collector, self.buffer, self.threshold = es, es_collector, buffer, threshold
-        self.generations = int(generations)
-        self.shared_buffer = bool(shared_buffer)
+    def __init__(self, work: Callable[[], list[torch.Tensor]]):
+        self.work = work
         self.executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="es-generations")
         self.future: Future | None = None
-        self.busy_seconds = 0.0
 
-    @classmethod
-    def wrap(cls, es, es_collector, buffer, threshold, generations: int, shared_buffer: bool = False):
+    @staticmethod
+    def guard(buffer, threshold) -> tuple[Guarded, Guarded]:
+        """``buffer`` and ``threshold`` behind one lock, shared by the ES thread and the TD3 loop."""
         lock = threading.RLock()
-        buffer, threshold = Guarded(buffer, lock), Guarded(threshold, lock)
-        return cls(es, es_collector, buffer, threshold, generations, shared_buffer), buffer, threshold
+        return Guarded(buffer, lock), Guarded(threshold, lock)
 
     def start(self) -> None:
         if self.future is not None:
             raise RuntimeError("BackgroundES.start: the previous iteration's generations were not joined")
-        self.future = self.executor.submit(es_phase, self.es, self.es_collector, self.buffer, self.threshold, self.generations, self.shared_buffer)
+        self.future = self.executor.submit(self.work)
 
     def join(self) -> list[torch.Tensor]:
         """Wait for the generations (re-raising their exception, if any) and return their returns."""

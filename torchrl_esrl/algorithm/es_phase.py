@@ -1,10 +1,12 @@
 """Algorithm 1's ES step: g generations of OpenAI-ES whose offspring trajectories feed the buffers."""
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import torch
 
+from torchrl_esrl.algorithm.background_es import BackgroundES
 from torchrl_esrl.errors import check_finite
 
 
@@ -60,11 +62,10 @@ class ESPhase:
     """
 
     def __init__(self, es, es_collector, buffer, threshold, generations: int, shared_buffer: bool, background: bool):
-        from torchrl_esrl.algorithm.background_es import BackgroundES
-
         self.background = None
         if background:
-            self.background, buffer, threshold = BackgroundES.wrap(es, es_collector, buffer, threshold, generations, shared_buffer)
+            buffer, threshold = BackgroundES.guard(buffer, threshold)
+            self.background = BackgroundES(functools.partial(es_phase, es, es_collector, buffer, threshold, int(generations), bool(shared_buffer)))
         self.es, self.es_collector, self.buffer, self.threshold = es, es_collector, buffer, threshold
         self.generations, self.shared_buffer = int(generations), bool(shared_buffer)
 
