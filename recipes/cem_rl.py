@@ -2,14 +2,17 @@
 
     python recipes/cem_rl.py env=halfcheetah experiment=quick
 
-Each generation (their Algorithm 1): sample a population from the diagonal CEM; once the replay
-buffer is ready, the first half of it is trained by TD3 with the shared critic; every member then
-plays one deterministic episode, its transitions go to the one replay buffer, and the top half
-update the CEM mean and variance. The returned policy is the CEM mean.
+Each generation, as the authors' code (``es_grad.py``) schedules it: sample a population from
+the diagonal CEM; once ``cem.start_frames`` frames were played and the buffer is ready, each of
+the first half of the population is loaded into the TD3 actor with a fresh Adam and gets F/half
+critic steps then F actor steps (F = frames of the previous generation,
+torchrl_esrl/es/cem.py:cem_rl_gradient_steps); every member then plays one deterministic
+episode into the one replay buffer, and the top half update the CEM mean and variance. The
+returned policy is the CEM mean.
 
 Every frame is both a fitness evaluation and a TD3 training frame: all frames are counted as
-``td3_frames`` (``es_frames`` stays 0), and TD3 does one update per frame collected, as in
-recipes/td3.py. One iteration = generations until ``td3.frames_per_iteration`` new frames.
+``td3_frames`` (``es_frames`` stays 0). One iteration = generations until
+``td3.frames_per_iteration`` new frames.
 """
 from __future__ import annotations
 
@@ -23,14 +26,14 @@ from tqdm.auto import tqdm
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # run from a checkout without installing
 
 from torchrl_esrl.data.multibuffer import MultiBuffer  # noqa: E402
-from torchrl_esrl.es.cem import td3_improve_member  # noqa: E402
+from torchrl_esrl.es.cem import cem_rl_gradient_steps  # noqa: E402
 from torchrl_esrl.run.factories import make_actor_critic, make_cem, make_es_collector, make_td3, make_train_env  # noqa: E402
 from torchrl_esrl.run.harness import RunHarness, hydra_main  # noqa: E402
 from torchrl_esrl.modules.networks import flat_parameters  # noqa: E402
 
 
 def train(cfg: DictConfig, run_dir: Path) -> dict:
-    harness = RunHarness(cfg, run_dir, algorithm="cem_rl", columns=("generations", "td3_updates", "population_mean_return", "population_max_return", "critic_loss", "cem_mean_std"))
+    harness = RunHarness(cfg, run_dir, algorithm="cem_rl", columns=("generations", "td3_updates", "actor_steps", "population_mean_return", "population_max_return", "critic_loss", "cem_mean_std"))
     env = make_train_env(cfg)
     actor, critic = make_actor_critic(cfg, env)
     td3 = make_td3(cfg, actor, critic, env.action_spec)
@@ -40,17 +43,16 @@ def train(cfg: DictConfig, run_dir: Path) -> dict:
     population_collector = make_es_collector(cfg, actor)  # one deterministic episode per member
     harness.attach_actor(actor)
 
-    frames, last_generation_frames = 0, 0
+    frames, last_generation_frames, actor_steps = 0, 0, 0
     for iteration in tqdm(range(cfg.iterations), desc="CEM-RL", unit="it", disable=not cfg.logger.progress):
         iteration_frames, returns, critic_losses = 0, [], []
         while iteration_frames < cfg.td3.frames_per_iteration:
             population = cem.ask()
-            # RL half: TD3 steps with the shared critic, as many updates in all as frames last generation.
-            if buffer.ready() and rl_members > 0:
-                updates_per_member = round(last_generation_frames * cfg.td3.updates_per_frame / rl_members)
-                for member in range(rl_members):
-                    population[member], losses = td3_improve_member(td3, buffer, population[member], updates_per_member)
-                    critic_losses += losses
+            # RL half: per member, F/half critic steps then F actor steps (F = last generation's frames).
+            if frames + iteration_frames > cfg.cem.start_frames and buffer.ready() and rl_members > 0:
+                steps = cem_rl_gradient_steps(td3, buffer, population, rl_members, last_generation_frames, cfg.td3.tau)
+                critic_losses += steps["critic_losses"]
+                actor_steps += steps["actor_steps"]
             generation = population_collector.evaluate(population)
             buffer.extend(generation.transitions, "noisy")
             cem.tell(population, generation.returns)
@@ -66,6 +68,7 @@ def train(cfg: DictConfig, run_dir: Path) -> dict:
             eval_return=harness.evaluate(cem.mean),
             generations=cem.generation,
             td3_updates=td3.updates,
+            actor_steps=actor_steps,
             population_mean_return=returns.mean().item(),
             population_max_return=returns.max().item(),
             critic_loss=sum(critic_losses) / len(critic_losses) if critic_losses else "",

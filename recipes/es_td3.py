@@ -121,7 +121,7 @@ def train(cfg: DictConfig, run_dir: Path) -> dict:
         # --- Overwrite rule: recentre ES on the TD3 actor if TD3 is ahead on average.
         decision = overwrite(td3_return, es_return)
         if decision.overwrite:
-            es.set_mean(flat_parameters(actor), reset_optimizer=cfg.overwrite.reset_optimizer)
+            es.set_mean(flat_parameters(actor), reset_optimizer=cfg.overwrite.reset_optimizer, mix=overwrite.mix)
 
         all_returns = torch.cat(generation_returns) if generation_returns else torch.zeros(1)
         sizes = buffer.sizes()
@@ -129,8 +129,8 @@ def train(cfg: DictConfig, run_dir: Path) -> dict:
             iteration,
             td3_frames,
             es_collector.frames,
-            # The policy returned at this point is the ES mean after the overwrite rule.
-            eval_return=td3_return if decision.overwrite else es_return,
+            # The policy returned at this point is the ES mean after the overwrite rule (soft: evaluated anew).
+            eval_return=es_return if not decision.overwrite else td3_return if overwrite.mix == 1 else evaluate(es.mean.detach(), cfg.eval.episodes),
             **{
                 "td3_updates": td3.updates,
                 "td3_eval_return": td3_return,
@@ -168,7 +168,7 @@ def train(cfg: DictConfig, run_dir: Path) -> dict:
             "ratio": list(buffer.ratio),  # (0, 0, 1) in shared mode
             "buffer_mode": cfg.buffer.mode,
             "td3_updates": td3.updates,
-            "final_td3_actor_return": evaluate(flat_parameters(actor), cfg.eval.final_episodes),
+            "final_td3_actor_return": harness.evaluate_final(flat_parameters(actor)),
             "overwrites": sum(d.overwrite for d in overwrite.decisions),
         },
         alias="final_es_mean_return",

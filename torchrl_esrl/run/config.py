@@ -43,6 +43,12 @@ def validate_config(cfg) -> None:
         raise ConfigError(f"threshold.fraction: {cfg.threshold.fraction} is invalid (allowed: a number in [0, 1])")
     if cfg.get("mode", "sequential") not in ("sequential", "async"):
         raise ConfigError(f"mode: {cfg.mode!r} is invalid (allowed: sequential, async)")
+    if isinstance(cfg.td3.random_frames, bool) or not isinstance(cfg.td3.random_frames, int) or cfg.td3.random_frames < 0:
+        raise ConfigError(f"td3.random_frames: {cfg.td3.random_frames!r} is invalid (allowed: 0 or a positive integer)")
+    if cfg.overwrite.mode not in ("hard", "soft"):
+        raise ConfigError(f"overwrite.mode: {cfg.overwrite.mode!r} is invalid (allowed: hard, soft)")
+    if isinstance(cfg.overwrite.mix, bool) or not isinstance(cfg.overwrite.mix, (int, float)) or not 0 < cfg.overwrite.mix <= 1:
+        raise ConfigError(f"overwrite.mix: {cfg.overwrite.mix!r} is invalid (allowed: a number in (0, 1])")
     validate_run_settings(cfg)
 
 

@@ -7,7 +7,10 @@ One evaluation protocol for all algorithms (ES-TD3Buffers, TD3, OpenAI-ES, CEM-R
   ``eval.episodes`` episodes, on its own seed stream, and written to ``metrics.csv`` as
   ``eval_return`` next to the core columns :data:`CORE_COLUMNS`;
 - at the end, the returned policy is evaluated over ``eval.final_episodes`` episodes and
-  ``summary.json`` records it as ``final_return`` with ``algorithm``, ``env`` and ``seed``.
+  ``summary.json`` records it as ``final_return`` with ``algorithm``, ``env`` and ``seed``. These
+  episodes have a seed stream of their own (:func:`final_episode_seeds`, a function of the run's
+  seed only): they never repeat the per-iteration episodes, and every policy a run reports at
+  the end (ES-TD3Buffers: the ES mean and the TD3 actor) plays the same final episodes.
 
 Evaluation frames are counted in neither ``td3_frames`` nor ``es_frames``.
 """
@@ -19,6 +22,7 @@ from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 
 import hydra
+import numpy as np
 import torch
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf
@@ -30,6 +34,12 @@ from torchrl_esrl.collectors.es_collector import ESCollector
 from torchrl_esrl.run.factories import seed_everything
 from torchrl_esrl.run.metrics import CORE_COLUMNS, MetricsLog, write_json
 from torchrl_esrl.run.schema import run_cli
+
+
+def final_episode_seeds(seed: int, episodes: int) -> list[int]:
+    """Reset seeds of the final evaluation: a stream keyed by ``(seed, "final")``, apart from the
+    per-iteration evaluation stream (``seed + 1000``) and from every training stream."""
+    return np.random.default_rng([int(seed), 0x46494E]).integers(0, 2**31 - 1, size=int(episodes)).tolist()
 
 
 class RunHarness:
@@ -67,12 +77,17 @@ class RunHarness:
         cfg = self.cfg
         self.evaluator = ESCollector(cfg.env.id, actor, backend="gym", max_episode_steps=cfg.env.max_episode_steps, seed=int(cfg.seed) + 1000)
 
-    def evaluate(self, vector: torch.Tensor, episodes: int | None = None) -> float:
-        """Mean return of the deterministic actor with flat parameters ``vector``."""
+    def evaluate(self, vector: torch.Tensor, episodes: int | None = None, seeds: Sequence[int] | None = None) -> float:
+        """Mean return of the deterministic actor with flat parameters ``vector`` (episode seeds
+        from the per-iteration stream unless ``seeds`` are given)."""
         if self.evaluator is None:
             raise RuntimeError("RunHarness.attach_actor must be called before evaluate")
-        episodes = int(episodes or self.cfg.eval.episodes)
-        return self.evaluator.evaluate_policy(vector.detach(), episodes).returns.mean().item()
+        episodes = len(seeds) if seeds is not None else int(episodes or self.cfg.eval.episodes)
+        return self.evaluator.evaluate_policy(vector.detach(), episodes, seeds=seeds).returns.mean().item()
+
+    def evaluate_final(self, vector: torch.Tensor) -> float:
+        """Mean return over the ``eval.final_episodes`` episodes of the final evaluation's own stream."""
+        return self.evaluate(vector, seeds=final_episode_seeds(self.cfg.seed, self.cfg.eval.final_episodes))
 
     def log(self, iteration: int, td3_frames: int, es_frames: int, eval_return: float, **extra) -> dict:
         """One checkpoint row of ``metrics.csv`` (and of the TorchRL logger)."""
@@ -104,7 +119,7 @@ class RunHarness:
             "frames_per_iteration": int(cfg.td3.frames_per_iteration),
             "td3_frames": self.last_row.get("td3_frames", 0),
             "es_frames": self.last_row.get("es_frames", 0),
-            "final_return": self.evaluate(returned, cfg.eval.final_episodes),
+            "final_return": self.evaluate_final(returned),
             "final_episodes": int(cfg.eval.final_episodes),
             **dict(extra or {}),
         }

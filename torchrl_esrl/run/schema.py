@@ -47,6 +47,7 @@ class TD3Config:
     critic_hidden: List[int] = MISSING
     critic_activation: str = MISSING
     fast: bool = MISSING
+    random_frames: int = MISSING
 
 
 @dataclass
@@ -86,6 +87,8 @@ class ThresholdConfig:
 class OverwriteConfig:
     window: int = MISSING
     reset_optimizer: bool = MISSING
+    mode: str = MISSING
+    mix: float = MISSING
 
 
 @dataclass
@@ -128,6 +131,8 @@ class CEMConfig:
     damping_init: float = 1.0e-3
     damping_end: float = 1.0e-5
     damping_tau: float = 0.95
+    antithetic: bool = MISSING  # conf/cem_rl.yaml
+    start_frames: int = MISSING
 
 
 @dataclass
