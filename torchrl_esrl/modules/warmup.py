@@ -26,13 +26,21 @@ class RandomWarmup(TensorDictModuleBase):
         super().__init__()
         self.policy = policy
         self.in_keys = list(policy.in_keys)
-        self.out_keys = list(dict.fromkeys([*policy.out_keys, action_key]))
+        self.out_keys = [action_key]
         self.action_key = action_key
+        self.seed = int(seed)
         self.register_buffer("low", action_spec.space.low.clone().float())
         self.register_buffer("high", action_spec.space.high.clone().float())
         self.frames = int(frames)
+        self.generator = torch.Generator()
+        self.reset()
+
+    def reset(self) -> None:
+        """Start the warm-up over: no frame acted, the generator at its seed. TorchRL's
+        ``Collector`` calls its policy once when it is built, to learn the policy's outputs;
+        :func:`~torchrl_esrl.run.factories.make_td3_batches` resets after that call."""
         self.frames_acted = 0
-        self.generator = torch.Generator().manual_seed(int(seed))
+        self.generator.manual_seed(self.seed)
 
     @property
     def warming_up(self) -> bool:

@@ -68,6 +68,8 @@ def make_td3(cfg: DictConfig, actor, critic, action_spec) -> TD3:
 def make_td3_batches(cfg: DictConfig, env, td3: TD3):
     """The TD3 collector and an iterator over it that lives across iterations."""
     collector = make_td3_collector(env, td3, cfg.td3.frames_per_batch)
+    if isinstance(td3.exploration_policy, RandomWarmup):
+        td3.exploration_policy.reset()  # undo the Collector's probing call: the warm-up starts at frame 0
     return collector, iter(collector)
 
 
