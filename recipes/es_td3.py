@@ -62,7 +62,7 @@ def train(cfg: DictConfig, run_dir: Path) -> dict:
     """
     shared_buffer = cfg.buffer.mode == "shared"
     progress = RunProgress()  # iteration, TD3 frames, the TD3 phase under way, the resumable clock
-    harness = RunHarness(cfg, run_dir, algorithm="es_td3_shared" if shared_buffer else "es_td3_buffers", columns=METRIC_COLUMNS, clock=progress.wall_time)
+    harness = RunHarness(cfg, run_dir, algorithm=("es_td3_shared" if shared_buffer else "es_td3_buffers") + ("_soft" if cfg.overwrite.mode == "soft" else ""), columns=METRIC_COLUMNS, clock=progress.wall_time)
     make_deterministic()
 
     # Initialise: TD3 actor pi, critics Q0, Q1 and targets; ES mean mu and sigma; MultiBuffer.
