@@ -67,4 +67,4 @@ run_one() {
 }
 export -f run_one
 
-runs | grep -E -- "$ONLY" | xargs -P "$JOBS" -L 1 bash -c 'run_one "$@"' _
+runs | grep -E -- "$ONLY" | xargs -r -P "$JOBS" -L 1 bash -c 'run_one "$@"' _

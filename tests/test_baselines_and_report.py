@@ -119,11 +119,6 @@ def test_soft_overwrite_run_is_its_own_row(runs):
             assert r["eval_return"] == r["es_eval_return"]
 
 
-def test_td3_warmup_acts_at_random_before_the_actor(runs):
-    rows, summary = load(runs / "td3_0")
-    assert (runs / "td3_0" / ".hydra" / "config.yaml").read_text().count("random_frames: 300") == 1
-
-
 def test_report_table_matches_the_runs_and_writes_figures(runs, tmp_path):
     result = subprocess.run([sys.executable, str(ROOT / "recipes" / "report.py"), str(runs), "--out", str(tmp_path)], cwd=ROOT, capture_output=True, text=True, timeout=300)
     assert result.returncode == 0, result.stderr[-3000:]

@@ -123,6 +123,10 @@ VALUE_ERRORS = [
     ("iterations=0", "iterations"),
     ("es.generations_per_iteration=0", "es.generations_per_iteration"),
     ("checkpoint.every_frames=-5", "checkpoint.every_frames"),
+    ("overwrite.mode=medium", "overwrite.mode"),
+    ("overwrite.mix=0", "overwrite.mix"),
+    ("overwrite.mix=1.5", "overwrite.mix"),
+    ("td3.random_frames=-1", "td3.random_frames"),
 ]
 
 

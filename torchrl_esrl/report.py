@@ -37,8 +37,8 @@ ALGORITHM_LABELS = {
     "td3": "TD3",
     "es": "OpenAI-ES",
     "cem_rl": "CEM-RL",
-    "es_td3_buffers_soft": "ES-TD3Buffers, soft overwrite",
-    "es_td3_shared_soft": "ES-TD3 (one shared buffer), soft overwrite",
+    "es_td3_buffers_soft": "ES-TD3Buffers (soft overwrite)",
+    "es_td3_shared_soft": "ES-TD3 (one shared buffer, soft overwrite)",
 }
 ES_TD3_BUFFERS = ("es_td3_buffers", "es_td3_buffers_soft")  # runs that have a good:bad:noisy ratio
 # ES-TD3 returns its ES mean, but the buffers act on its TD3 actor: the table and the curves also
