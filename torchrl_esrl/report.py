@@ -169,19 +169,27 @@ def results_table(runs: list[dict]) -> list[dict]:
     return rows
 
 
+def _write_csv(path: Path, columns, rows: list[dict]) -> None:
+    with path.open("w", newline="") as handle:
+        writer = csv.DictWriter(handle, fieldnames=columns)
+        writer.writeheader()
+        writer.writerows(rows)
+
+
+def _ci_text(low: float, high: float, digits: int) -> str:
+    return "n/a" if math.isnan(low) else f"[{low:.{digits}f}, {high:.{digits}f}]"
+
+
 def write_table(rows: list[dict], out_dir: Path) -> tuple[Path, Path]:
     """``results.csv`` and ``results.md`` (Table 1 layout: env x algorithm, mean / std / median)."""
     csv_path, md_path = out_dir / "results.csv", out_dir / "results.md"
-    with csv_path.open("w", newline="") as handle:
-        writer = csv.DictWriter(handle, fieldnames=TABLE_COLUMNS)
-        writer.writeheader()
-        writer.writerows(rows)
+    _write_csv(csv_path, TABLE_COLUMNS, rows)
     lines = [
         "| env | algorithm | runs | TD3 frames | ES frames | mean | std | median | IQM [95% CI] |",
         "|---|---|---:|---:|---:|---:|---:|---:|---|",
     ]
     for r in rows:
-        ci = "n/a" if math.isnan(r["iqm_ci_low"]) else f"[{r['iqm_ci_low']:.1f}, {r['iqm_ci_high']:.1f}]"
+        ci = _ci_text(r["iqm_ci_low"], r["iqm_ci_high"], 1)
         lines.append(f"| {r['env']} | {label(r['algorithm'], r['ratio'])} | {r['runs']} | {r['td3_frames']} | {r['es_frames']} | {r['mean']:.1f} | {r['std']:.1f} | {r['median']:.1f} | {r['iqm']:.1f} {ci} |")
     lines += [
         "",
@@ -220,13 +228,10 @@ def improvement_table(runs: list[dict], reference: tuple[str, str] = ("es_td3_bu
 def write_improvement_table(rows: list[dict], out_dir: Path) -> tuple[Path, Path]:
     """``improvement.csv`` and ``improvement.md``: P(ES-TD3Buffers > row) per env, with CI."""
     csv_path, md_path = out_dir / "improvement.csv", out_dir / "improvement.md"
-    with csv_path.open("w", newline="") as handle:
-        writer = csv.DictWriter(handle, fieldnames=IMPROVEMENT_COLUMNS)
-        writer.writeheader()
-        writer.writerows(rows)
+    _write_csv(csv_path, IMPROVEMENT_COLUMNS, rows)
     lines = ["| env | P(ES-TD3Buffers > row) | row | runs (ES-TD3Buffers / row) | 95% CI |", "|---|---:|---|---|---|"]
     for r in rows:
-        ci = "n/a" if math.isnan(r["ci_low"]) else f"[{r['ci_low']:.2f}, {r['ci_high']:.2f}]"
+        ci = _ci_text(r["ci_low"], r["ci_high"], 2)
         lines.append(f"| {r['env']} | {r['probability']:.2f} | {label(r['other_algorithm'], r['other_ratio'])} | {r['runs']} / {r['other_runs']} | {ci} |")
     lines += [
         "",
@@ -249,10 +254,7 @@ def write_runs_table(runs: list[dict], out_dir: Path) -> tuple[Path, Path]:
         rows.append({**{key: s.get(key, "") for key in RUN_COLUMNS}, "ratio": ratio_text(s), "dir": str(run["dir"])})
     rows.sort(key=lambda r: (r["env"], r["algorithm"], r["ratio"], r["seed"]))
     csv_path, md_path = out_dir / "runs.csv", out_dir / "runs.md"
-    with csv_path.open("w", newline="") as handle:
-        writer = csv.DictWriter(handle, fieldnames=RUN_COLUMNS)
-        writer.writeheader()
-        writer.writerows(rows)
+    _write_csv(csv_path, RUN_COLUMNS, rows)
 
     def number(value, digits=1):
         return f"{value:.{digits}f}" if isinstance(value, (int, float)) else "-"

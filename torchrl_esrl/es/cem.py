@@ -111,6 +111,11 @@ def load_actor_and_target(td3, vector: torch.Tensor) -> None:
     td3.actor_optimizer.state.clear()
 
 
+def _check_finite(name: str, value: torch.Tensor, member: int) -> None:
+    if not torch.isfinite(value):
+        raise FloatingPointError(f"CEM-RL {name} loss is {value.item()} while training member {member}")
+
+
 @torch.no_grad()
 def _soft_update(target, source, tau: float) -> None:
     target.data.lerp_(source.data, tau)
@@ -132,6 +137,7 @@ def cem_rl_gradient_steps(td3, buffer, population: torch.Tensor, rl_members: int
         load_actor_and_target(td3, population[member])
         for _ in range(int(frames) // int(rl_members)):
             critic_loss, _ = loss.value_loss(buffer.sample())
+            _check_finite("critic", critic_loss, member)
             td3.critic_optimizer.zero_grad(set_to_none=True)
             critic_loss.backward()
             td3.critic_optimizer.step()
@@ -140,6 +146,7 @@ def cem_rl_gradient_steps(td3, buffer, population: torch.Tensor, rl_members: int
             critic_steps += 1
         for _ in range(int(frames)):
             actor_loss, _ = loss.actor_loss(buffer.sample())
+            _check_finite("actor", actor_loss, member)
             td3.actor_optimizer.zero_grad(set_to_none=True)
             actor_loss.backward()
             td3.actor_optimizer.step()
