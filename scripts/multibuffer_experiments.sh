@@ -4,7 +4,7 @@
 # parallel_jobs runs at a time (default 2: one per core of a 2-core machine).
 #   HalfCheetah-v5 and Walker2d-v5, seeds 0-4 of: ES-TD3Buffers 0.5:0.2:0.3; one shared buffer
 #   (buffer.mode=shared); soft overwrite (overwrite.mode=soft, mix 0.5); TD3 (Fujimoto's uniform warm-up,
-#   scaled to 5,000 frames like K); CEM-RL (one 10-member generation per iteration, 4 x 10,000 frames,
+#   K = 5,000 frames: conf/td3.yaml); CEM-RL (one 10-member generation per iteration, 4 x 10,000 frames,
 #   start_frames scaled to 5,000); OpenAI-ES.  Ratio sweep on HalfCheetah: 0.2:0.2:0.6 and 0.8:0.1:0.1,
 #   seeds 0-2 (0.5:0.2:0.3 comes from the main rows).  Runs start seed by seed, so a partial set is balanced.
 #
@@ -32,7 +32,7 @@ runs() {  # env row recipe seed [overrides...], one run per line, in the order t
       echo "$env es_td3 es_td3.py $seed"
       echo "$env es_td3_shared es_td3.py $seed buffer.mode=shared"
       echo "$env es_td3_soft es_td3.py $seed overwrite.mode=soft overwrite.mix=0.5"
-      echo "$env td3 td3.py $seed td3.random_frames=5000"
+      echo "$env td3 td3.py $seed"
       echo "$env cem_rl cem_rl.py $seed iterations=4 td3.frames_per_iteration=10000 cem.start_frames=5000"
       echo "$env es es.py $seed"
     done
