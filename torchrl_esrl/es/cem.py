@@ -111,14 +111,17 @@ def load_actor_and_target(td3, vector: torch.Tensor) -> None:
     td3.actor_optimizer.state.clear()
 
 
-def _check_finite(name: str, value: torch.Tensor, member: int) -> None:
+def _gradient_step(name: str, loss_fn, optimizer, target, source, batch, tau: float, member: int) -> float:
+    """One Adam step on ``loss_fn(batch)``, then the soft update of that network's target only."""
+    value, _ = loss_fn(batch)
     if not torch.isfinite(value):
         raise FloatingPointError(f"CEM-RL {name} loss is {value.item()} while training member {member}")
-
-
-@torch.no_grad()
-def _soft_update(target, source, tau: float) -> None:
-    target.data.lerp_(source.data, tau)
+    optimizer.zero_grad(set_to_none=True)
+    value.backward()
+    optimizer.step()
+    with torch.no_grad():
+        target.data.lerp_(source.data, tau)
+    return value.item()
 
 
 def cem_rl_gradient_steps(td3, buffer, population: torch.Tensor, rl_members: int, frames: int, tau: float) -> dict:
@@ -132,25 +135,16 @@ def cem_rl_gradient_steps(td3, buffer, population: torch.Tensor, rl_members: int
     number of frames the previous generation played. Returns the step counts and critic losses.
     """
     loss = td3.loss
+    critic = ("critic", loss.value_loss, td3.critic_optimizer, loss.target_qvalue_network_params, loss.qvalue_network_params)
+    actor = ("actor", loss.actor_loss, td3.actor_optimizer, loss.target_actor_network_params, loss.actor_network_params)
     critic_steps, actor_steps, critic_losses = 0, 0, []
     for member in range(int(rl_members)):
         load_actor_and_target(td3, population[member])
         for _ in range(int(frames) // int(rl_members)):
-            critic_loss, _ = loss.value_loss(buffer.sample())
-            _check_finite("critic", critic_loss, member)
-            td3.critic_optimizer.zero_grad(set_to_none=True)
-            critic_loss.backward()
-            td3.critic_optimizer.step()
-            _soft_update(loss.target_qvalue_network_params, loss.qvalue_network_params, tau)
-            critic_losses.append(critic_loss.item())
+            critic_losses.append(_gradient_step(*critic, buffer.sample(), tau, member))
             critic_steps += 1
         for _ in range(int(frames)):
-            actor_loss, _ = loss.actor_loss(buffer.sample())
-            _check_finite("actor", actor_loss, member)
-            td3.actor_optimizer.zero_grad(set_to_none=True)
-            actor_loss.backward()
-            td3.actor_optimizer.step()
-            _soft_update(loss.target_actor_network_params, loss.actor_network_params, tau)
+            _gradient_step(*actor, buffer.sample(), tau, member)
             actor_steps += 1
         population[member] = flat_parameters(td3.actor)
     td3.updates += critic_steps
