@@ -2,14 +2,17 @@
 
     python recipes/cem_rl.py env=halfcheetah experiment=quick
 
-Each generation (their Algorithm 1): sample a population from the diagonal CEM; once the replay
-buffer is ready, the first half of it is trained by TD3 with the shared critic; every member then
-plays one deterministic episode, its transitions go to the one replay buffer, and the top half
-update the CEM mean and variance. The returned policy is the CEM mean.
+Each generation, as the authors' code (``es_grad.py``) schedules it: sample a population from
+the diagonal CEM; once ``cem.start_frames`` frames were played and the buffer is ready, each of
+the first half of the population is loaded into the TD3 actor with a fresh Adam and gets F/half
+critic steps then F actor steps (F = frames of the previous generation,
+torchrl_esrl/es/cem.py:cem_rl_gradient_steps); every member then plays one deterministic
+episode into the one replay buffer, and the top half update the CEM mean and variance. The
+returned policy is the CEM mean.
 
 Every frame is both a fitness evaluation and a TD3 training frame: all frames are counted as
-``td3_frames`` (``es_frames`` stays 0), and TD3 does one update per frame collected, as in
-recipes/td3.py. One iteration = generations until ``td3.frames_per_iteration`` new frames.
+``td3_frames`` (``es_frames`` stays 0). One iteration = generations until
+``td3.frames_per_iteration`` new frames.
 """
 from __future__ import annotations
 
@@ -17,7 +20,7 @@ import torch
 from omegaconf import DictConfig
 
 from torchrl_esrl.data.multibuffer import MultiBuffer
-from torchrl_esrl.es.cem import td3_improve_member
+from torchrl_esrl.es.cem import cem_rl_gradient_steps
 from torchrl_esrl.run.factories import make_actor_critic, make_cem, make_es_collector, make_td3, make_train_env
 from torchrl_esrl.run.lifecycle import Run, recipe_main
 
@@ -33,16 +36,16 @@ def train(cfg: DictConfig, run: Run) -> dict:
     run.resume(actor, td3=td3, buffer=buffer, cem=cem, population_collector=population_collector)
     counters = run.progress.counters  # checkpointed with the run
     frames, last_generation_frames = counters.setdefault("frames", 0), counters.setdefault("last_generation_frames", 0)
+    actor_steps = counters.setdefault("actor_steps", 0)
     for iteration in run.iterations("CEM-RL"):
         iteration_frames, returns, critic_losses = 0, [], []
         while iteration_frames < cfg.td3.frames_per_iteration:
             population = cem.ask()
-            # RL half: TD3 steps with the shared critic, as many updates in all as frames last generation.
-            if buffer.ready() and rl_members > 0:
-                updates_per_member = round(last_generation_frames * cfg.td3.updates_per_frame / rl_members)
-                for member in range(rl_members):
-                    population[member], losses = td3_improve_member(td3, buffer, population[member], updates_per_member)
-                    critic_losses += losses
+            # RL half: per member, F/half critic steps then F actor steps (F = last generation's frames).
+            if frames + iteration_frames > cfg.cem.start_frames and buffer.ready() and rl_members > 0:
+                steps = cem_rl_gradient_steps(td3, buffer, population, rl_members, last_generation_frames, cfg.td3.tau)
+                critic_losses += steps["critic_losses"]
+                actor_steps += steps["actor_steps"]
             generation = population_collector.evaluate(population)
             buffer.extend(generation.transitions, "noisy")
             cem.tell(population, generation.returns)
@@ -50,7 +53,7 @@ def train(cfg: DictConfig, run: Run) -> dict:
             iteration_frames += generation.frames
             returns.append(generation.returns)
         frames += iteration_frames
-        counters.update(frames=frames, last_generation_frames=last_generation_frames)
+        counters.update(frames=frames, last_generation_frames=last_generation_frames, actor_steps=actor_steps)
         returns = torch.cat(returns)
         run.log(
             iteration,
@@ -59,6 +62,7 @@ def train(cfg: DictConfig, run: Run) -> dict:
             eval_return=run.evaluate(cem.mean),
             generations=cem.generation,
             td3_updates=td3.updates,
+            actor_steps=actor_steps,
             population_mean_return=returns.mean().item(),
             population_max_return=returns.max().item(),
             critic_loss=sum(critic_losses) / len(critic_losses) if critic_losses else "",

@@ -73,10 +73,10 @@ def train(cfg: DictConfig, run: Run) -> dict:
         # Overwrite rule (Section 3.2): recentre ES on the TD3 actor if TD3 is ahead on average.
         decision = overwrite(td3_return, es_return)
         if decision.overwrite:
-            es.set_mean(flat_parameters(actor), reset_optimizer=cfg.overwrite.reset_optimizer)
+            es.set_mean(flat_parameters(actor), reset_optimizer=cfg.overwrite.reset_optimizer, mix=overwrite.mix)
         run.log(
-            iteration, run.progress.frames_now, es_collector.frames,
-            eval_return=td3_return if decision.overwrite else es_return,  # the returned policy: the ES mean after the rule
+            iteration, run.progress.frames_now, es_collector.frames,  # the returned policy: the ES mean after the rule (soft: evaluated anew)
+            eval_return=es_return if not decision.overwrite else td3_return if overwrite.mix == 1 else run.evaluate(es.mean.detach()),
             td3_updates=td3.updates, **decision.metrics(), **threshold.metrics(),
             **{f"{name}_size": size for name, size in buffer.sizes().items()},
             **generations.metrics(), critic_loss=td3_stats["critic_loss"], actor_loss=td3_stats["actor_loss"], buffer_mode=cfg.buffer.mode,
@@ -91,12 +91,12 @@ def train(cfg: DictConfig, run: Run) -> dict:
         "ratio": list(buffer.ratio),  # (0, 0, 1) in shared mode
         "buffer_mode": cfg.buffer.mode,
         "td3_updates": td3.updates,
-        "final_td3_actor_return": run.evaluate(flat_parameters(actor), cfg.eval.final_episodes),
+        "final_td3_actor_return": run.evaluate_final(flat_parameters(actor)),
         "overwrites": sum(d.overwrite for d in overwrite.decisions),
     }, alias="final_es_mean_return")
 
 
-main = recipe_main(train, config_name="config", algorithm=lambda cfg: "es_td3_shared" if cfg.buffer.mode == "shared" else "es_td3_buffers")
+main = recipe_main(train, config_name="config", algorithm=lambda cfg: ("es_td3_shared" if cfg.buffer.mode == "shared" else "es_td3_buffers") + ("_soft" if cfg.overwrite.mode == "soft" else ""))
 
 if __name__ == "__main__":
     main()

@@ -26,13 +26,14 @@ def run_ok(run_recipe, script, *overrides):
 def runs(tmp_path_factory, run_recipe):
     root = tmp_path_factory.mktemp("runs")
     run = functools.partial(run_ok, run_recipe)
-    run("td3.py", "seed=0", f"hydra.run.dir={root}/td3_0")
+    run("td3.py", "seed=0", "td3.random_frames=300", f"hydra.run.dir={root}/td3_0")
     run("td3.py", "seed=1", f"hydra.run.dir={root}/td3_1")
     run("es.py", "seed=0", f"hydra.run.dir={root}/es_0")
     run("es.py", "seed=1", f"hydra.run.dir={root}/es_1")
-    run("cem_rl.py", "seed=0", "cem.population_size=4", f"hydra.run.dir={root}/cem_0")
+    run("cem_rl.py", "seed=0", "cem.population_size=4", "cem.start_frames=0", f"hydra.run.dir={root}/cem_0")
     run("es_td3.py", "seed=0", "buffer.mode=shared", f"hydra.run.dir={root}/shared_0")
     run("es_td3.py", "-m", "seed=0", "buffer.ratio=[0.5,0.2,0.3],[0.2,0.2,0.6]", f"hydra.sweep.dir={root}/sweep")
+    run("es_td3.py", "seed=0", "overwrite.mode=soft", "overwrite.mix=0.5", f"hydra.run.dir={root}/soft_0")
     return root
 
 
@@ -72,8 +73,9 @@ def test_cem_rl_recipe_trains_half_the_population(runs):
     check_core(rows, summary, "cem_rl")
     # one generation of 4 x 100 frames per iteration; every frame enters the TD3 buffer
     assert [r["td3_frames"] for r in rows] == [400, 800] and [r["generations"] for r in rows] == [1, 2]
-    # generation 1: buffer empty, no TD3; generation 2: 2 members x 400/2 updates
-    assert [r["td3_updates"] for r in rows] == [0, 400]
+    # generation 1: buffer empty, no TD3; generation 2 (F = 400 frames of generation 1), per RL
+    # member (2 of 4): a fresh Adam, F / 2 = 200 critic steps, then F = 400 actor steps
+    assert [r["td3_updates"] for r in rows] == [0, 400] and [r["actor_steps"] for r in rows] == [0, 800]
 
 
 def test_shared_buffer_ablation_puts_everything_in_one_buffer(runs):
@@ -93,12 +95,21 @@ def test_es_td3_writes_the_core_columns_and_the_returned_policy(runs):
         assert summary["final_es_mean_return"] == summary["final_return"]
 
 
+def test_soft_overwrite_run_is_its_own_row(runs):
+    rows, summary = load(runs / "soft_0")
+    check_core(rows, summary, "es_td3_buffers_soft")
+    for r in rows:  # not overwritten: the ES mean as evaluated; overwritten: the mixed mean, evaluated anew
+        if not r["overwritten"]:
+            assert r["eval_return"] == r["es_eval_return"]
+
+
 def test_report_table_matches_the_runs_and_writes_figures(runs, tmp_path):
     result = subprocess.run([sys.executable, str(ROOT / "recipes" / "report.py"), str(runs), "--out", str(tmp_path)], cwd=ROOT, capture_output=True, text=True, timeout=300)
     assert result.returncode == 0, result.stderr[-3000:]
     with (tmp_path / "results.csv").open() as handle:
         table = {(row["algorithm"], row["ratio"]): row for row in csv.DictReader(handle)}
     buffers = [(algorithm, ratio) for algorithm in ("es_td3_buffers", "es_td3_buffers/td3_actor") for ratio in ("0.2:0.2:0.6", "0.5:0.2:0.3")]
+    buffers += [("es_td3_buffers_soft", "0.5:0.2:0.3"), ("es_td3_buffers_soft/td3_actor", "0.5:0.2:0.3")]
     others = [(algorithm, "") for algorithm in ("td3", "es", "cem_rl", "es_td3_shared", "es_td3_shared/td3_actor")]
     assert set(table) == set(buffers + others)  # runs at different ratios are never pooled
     finals = [load(runs / d)[1]["final_return"] for d in ("td3_0", "td3_1")]
@@ -117,10 +128,18 @@ def test_report_table_matches_the_runs_and_writes_figures(runs, tmp_path):
         assert float(table[("es_td3_buffers/td3_actor", ratio)]["mean"]) == pytest.approx(summary["final_td3_actor_return"])
     with (tmp_path / "runs.csv").open() as handle:  # one row per run, the numbers behind the table
         per_run = list(csv.DictReader(handle))
-    assert len(per_run) == 8 and sorted(float(r["final_return"]) for r in per_run if r["algorithm"] == "td3") == sorted(finals)
+    assert len(per_run) == 9 and sorted(float(r["final_return"]) for r in per_run if r["algorithm"] == "td3") == sorted(finals)
     markdown = (tmp_path / "results.md").read_text()
     assert "| HalfCheetah-v5 | TD3 | 2 |" in markdown and "| HalfCheetah-v5 | ES-TD3Buffers 0.5:0.2:0.3: its TD3 actor | 1 |" in markdown
-    for name in ("curves_HalfCheetah-v5.png", "es_vs_td3_HalfCheetah-v5.png", "ratio_sweep_HalfCheetah-v5.png"):
+    with (tmp_path / "improvement.csv").open() as handle:  # P(ES-TD3Buffers 0.5:0.2:0.3 > row), every other row
+        improvement = {(row["other_algorithm"], row["other_ratio"]): row for row in csv.DictReader(handle)}
+    assert set(improvement) == set(table) - {("es_td3_buffers", "0.5:0.2:0.3")}
+    mine = float(table[("es_td3_buffers", "0.5:0.2:0.3")]["mean"])
+    for (algorithm, ratio), row in improvement.items():  # one reference run: P is 0, 0.5 or 1 against each run
+        others = [float(r["final_return"]) for r in per_run if r["algorithm"] == algorithm and r["ratio"] == ratio] if "/" not in algorithm else None
+        if others is not None:
+            assert float(row["probability"]) == pytest.approx(statistics.mean(1.0 if mine > o else 0.5 if mine == o else 0.0 for o in others))
+    for name in ("curves_HalfCheetah-v5.png", "es_vs_td3_HalfCheetah-v5.png", "ratio_sweep_HalfCheetah-v5.png", "hard_vs_soft_HalfCheetah-v5.png"):
         png = (tmp_path / name).read_bytes()
         assert png[:8] == b"\x89PNG\r\n\x1a\n" and len(png) > 10_000, name
 

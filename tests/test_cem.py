@@ -14,25 +14,33 @@ def test_elite_weights_are_log_rank_weights_summing_to_one():
     assert torch.all(w[:-1] > w[1:])  # better rank, larger weight
 
 
-def test_tell_uses_top_half_for_mean_and_variance_around_old_mean():
+def test_tell_is_the_reference_sepcem_update_on_hand_computed_numbers():
     cem = DiagonalCEM(torch.zeros(3), population_size=4, sigma_init=0.1, damping_init=1e-3, damping_end=1e-5, damping_tau=0.5)
+    assert torch.allclose(cem.var, torch.full((3,), 0.1))  # sigma_init is a variance, as in the reference
     population = torch.tensor([[1.0, 0.0, 0.0], [2.0, 0.0, 0.0], [3.0, 1.0, 0.0], [4.0, 0.0, 2.0]])
-    returns = torch.tensor([10.0, -5.0, 30.0, 0.0])  # elites: member 2 (best), then member 0
+    returns = torch.tensor([10.0, -5.0, 30.0, 0.0])  # parents: member 2 (best), then member 0
     elites = cem.tell(population, returns)
     assert elites.tolist() == [2, 0]
-    w = elite_weights(2)  # [log(3), log(1.5)] normalised
-    expected_mean = w[0] * population[2] + w[1] * population[0]
-    assert torch.allclose(cem.mean, expected_mean)
-    # variance around the OLD mean (0), plus the damping before its decay
-    expected_var = w[0] * population[2] ** 2 + w[1] * population[0] ** 2 + 1e-3
-    assert torch.allclose(cem.var, expected_var)
-    assert cem.damping == pytest.approx(0.5 * 1e-3 + 0.5 * 1e-5)
-    # the losers (members 1 and 3) did not move anything: coordinate 2 only in member 3
-    assert cem.mean[2] == 0 and cem.var[2] == pytest.approx(1e-3)
+    # weights log(3), log(1.5) normalised: 0.730423, 0.269577
+    # damping decayed BEFORE use: 0.5 * 1e-3 + 0.5 * 1e-5 = 5.05e-4
+    # mean = 0.730423 * [3, 1, 0] + 0.269577 * [1, 0, 0]                       = [2.460845, 0.730423, 0]
+    # var  = 1/2 * (0.730423 * [9, 1, 0] + 0.269577 * [1, 0, 0]) + 5.05e-4      = [3.422196, 0.365716, 5.05e-4]
+    assert torch.allclose(cem.mean, torch.tensor([2.460845, 0.730423, 0.0]), atol=1e-5)
+    assert torch.allclose(cem.var, torch.tensor([3.422196, 0.365716, 5.05e-4]), atol=1e-5)
+    assert cem.damping == pytest.approx(5.05e-4)
+    # the losers (members 1 and 3) moved nothing: coordinate 2 is non-zero only in member 3
+
+
+def test_ask_is_antithetic_for_an_even_population():
+    cem = DiagonalCEM(torch.full((5,), 1.0), population_size=6, sigma_init=0.04, generator=torch.Generator().manual_seed(2))
+    samples = cem.ask()
+    assert torch.allclose(samples[:3] - 1.0, -(samples[3:] - 1.0))
+    odd = DiagonalCEM(torch.zeros(5), population_size=5, sigma_init=0.04)
+    assert not odd.antithetic and odd.ask().shape == (5, 5)
 
 
 def test_ask_samples_the_diagonal_gaussian():
-    cem = DiagonalCEM(torch.full((2,), 5.0), population_size=4000, sigma_init=0.5, generator=torch.Generator().manual_seed(1))
+    cem = DiagonalCEM(torch.full((2,), 5.0), population_size=4000, sigma_init=0.25, generator=torch.Generator().manual_seed(1))
     cem.var = torch.tensor([0.25, 4.0])
     samples = cem.ask()
     assert samples.shape == (4000, 2)
@@ -42,9 +50,42 @@ def test_ask_samples_the_diagonal_gaussian():
 
 def test_cem_climbs_a_quadratic():
     target = torch.linspace(-1, 1, 8)
-    cem = DiagonalCEM(torch.zeros(8), population_size=20, sigma_init=0.5, damping_init=1e-2, generator=torch.Generator().manual_seed(0))
+    cem = DiagonalCEM(torch.zeros(8), population_size=20, sigma_init=0.25, damping_init=1e-2, generator=torch.Generator().manual_seed(0))
     start = (cem.mean - target).norm()
     for _ in range(60):
         population = cem.ask()
         cem.tell(population, -((population - target) ** 2).sum(1))
     assert (cem.mean - target).norm() < 0.1 * start
+
+
+def test_gradient_steps_follow_the_reference_schedule():
+    """Per RL member: loaded into the actor with a fresh Adam, F // members critic steps, then
+    F actor steps (reference es_grad.py); the other members are left as sampled."""
+    from torchrl_esrl.collectors.es_collector import ESCollector
+    from torchrl_esrl.data.multibuffer import MultiBuffer
+    from torchrl_esrl.envs import make_env
+    from torchrl_esrl.es.cem import cem_rl_gradient_steps
+    from torchrl_esrl.modules.networks import flat_parameters, make_actor, make_critic
+    from torchrl_esrl.objectives.td3 import TD3
+
+    env = make_env("swimmer", max_episode_steps=40)
+    actor = make_actor(8, env.action_spec, (16, 16))
+    td3 = TD3(actor, make_critic(8, 2, (16, 16)), env.action_spec)
+    cem = DiagonalCEM(flat_parameters(actor), population_size=4, sigma_init=1e-3, generator=torch.Generator().manual_seed(0))
+    population = cem.ask()
+    generation = ESCollector("swimmer", actor, backend="gym", max_episode_steps=40).evaluate(population)
+    buffer = MultiBuffer(ratio=(0, 0, 1), capacity=1000, batch_size=8, min_size=8)
+    buffer.extend(generation.transitions, "noisy")
+    frames = generation.frames  # F: 4 members x 40 steps
+    assert frames == 160
+    sampled = population.clone()
+    critic_adam_steps = lambda: {int(v["step"]) for v in td3.critic_optimizer.state.values()}  # noqa: E731
+
+    steps = cem_rl_gradient_steps(td3, buffer, population, rl_members=2, frames=frames, tau=0.005)
+    assert steps["critic_steps"] == 2 * (160 // 2) and steps["actor_steps"] == 2 * 160
+    assert critic_adam_steps() == {160}  # the critic (and its Adam) is shared across members
+    # fresh Adam per member: the last member's actor optimiser counted its own F steps only
+    assert {int(v["step"]) for v in td3.actor_optimizer.state.values()} == {160}
+    assert not torch.equal(population[0], sampled[0]) and not torch.equal(population[1], sampled[1])
+    assert torch.equal(population[2:], sampled[2:])
+    assert torch.equal(population[1], flat_parameters(actor))

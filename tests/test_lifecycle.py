@@ -124,6 +124,10 @@ VALUE_ERRORS = [
     ("iterations=0", "iterations"),
     ("es.generations_per_iteration=0", "es.generations_per_iteration"),
     ("checkpoint.every_frames=-5", "checkpoint.every_frames"),
+    ("overwrite.mode=medium", "overwrite.mode"),
+    ("overwrite.mix=0", "overwrite.mix"),
+    ("overwrite.mix=1.5", "overwrite.mix"),
+    ("td3.random_frames=-1", "td3.random_frames"),
     # Every key of conf/config.yaml with a bounded range or a fixed set of values.
     ("seed=-1", "seed"),
     ("experiment_name=''", "experiment_name"),
@@ -180,6 +184,7 @@ CEM_VALUE_ERRORS = [  # conf/cem_rl.yaml's own section
     ("cem.damping_init=-1", "cem.damping_init"),
     ("cem.damping_end=-1", "cem.damping_end"),
     ("cem.damping_tau=2", "cem.damping_tau"),
+    ("cem.start_frames=-1", "cem.start_frames"),
 ]
 
 
@@ -276,7 +281,7 @@ def test_injected_nan_stops_the_run_and_keeps_the_last_checkpoint(tmp_path, wher
 BASELINES = [
     ("td3.py", [], "checkpoint-000000000100"),
     ("es.py", ["iterations=4"], "checkpoint-000000000001"),
-    ("cem_rl.py", ["iterations=4", "cem.population_size=4"], "checkpoint-000000000001"),
+    ("cem_rl.py", ["iterations=4", "cem.population_size=4", "cem.start_frames=0"], "checkpoint-000000000001"),
 ]
 
 

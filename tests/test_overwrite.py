@@ -1,3 +1,4 @@
+import pytest
 import torch
 
 from torchrl_esrl.envs import make_env
@@ -8,7 +9,7 @@ from torchrl_esrl.algorithm.overwrite import OverwriteRule
 
 
 def test_decision_uses_the_average_over_the_window():
-    rule = OverwriteRule(window=2)
+    rule = OverwriteRule(window=2, mode="hard", mix=0.5)
     assert rule(td3_return=10, es_return=0).overwrite  # 10 > 0
     decision = rule(td3_return=-30, es_return=5)  # averages: td3 -10, es 2.5
     assert not decision.overwrite
@@ -40,8 +41,37 @@ def test_overwriting_copies_the_actor_into_the_es_mean_and_its_behaviour():
 
 
 def test_state_round_trip():
-    rule = OverwriteRule(window=3)
+    rule = OverwriteRule(window=3, mode="soft", mix=0.5)
     rule(1.0, 2.0)
-    restored = OverwriteRule()
+    restored = OverwriteRule(window=1, mode="soft", mix=0.5)
     restored.load_state_dict(rule.state_dict())
     assert restored(5.0, 0.0).td3_average == rule(5.0, 0.0).td3_average == 3.0
+
+
+def test_hard_mode_ignores_mix_and_soft_mode_keeps_it():
+    assert OverwriteRule(window=3, mode="hard", mix=0.3).mix == 1.0
+    assert OverwriteRule(window=3, mode="soft", mix=0.3).mix == 0.3
+    for mode, mix in (("medium", 0.5), ("soft", 0.0), ("soft", 1.5)):
+        with pytest.raises(ValueError):
+            OverwriteRule(window=3, mode=mode, mix=mix)
+
+
+def test_soft_overwrite_moves_the_es_mean_part_way_to_the_actor():
+    """Section 5's soft overwrite on a real OpenES and a real actor: mean <- (1 - mix) mean + mix actor."""
+    env = make_env("swimmer")
+    actor = make_actor(8, env.action_spec)
+    es = OpenES(flat_parameters(actor), population_size=4, generator=torch.Generator().manual_seed(0))
+    es.ask()
+    es.tell(torch.tensor([1.0, 4.0, 2.0, 3.0]))  # one real ES step: Adam has moments to clear
+    old_mean = es.mean.detach().clone()
+    with torch.no_grad():
+        for parameter in actor.parameters():
+            parameter.add_(0.05 * torch.randn_like(parameter))
+    rule = OverwriteRule(window=1, mode="soft", mix=0.25)
+    assert rule(td3_return=10.0, es_return=0.0).overwrite
+    es.set_mean(flat_parameters(actor), reset_optimizer=True, mix=rule.mix)
+    torch.testing.assert_close(es.mean.detach(), 0.75 * old_mean + 0.25 * flat_parameters(actor))
+    assert not es.optimizer.state  # Adam restarted
+    # the distance to the actor shrinks by exactly (1 - mix)
+    before, after = (old_mean - flat_parameters(actor)).norm(), (es.mean.detach() - flat_parameters(actor)).norm()
+    assert after == pytest.approx(0.75 * before.item(), rel=1e-4)

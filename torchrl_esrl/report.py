@@ -7,7 +7,11 @@ runs) is searched recursively.
 
 - Table: per env x algorithm, the final return of the returned policy (``final_return``) over
   seeds: mean, std (ddof=1), median (the paper's Table 1) and the interquartile mean with a 95%
-  percentile-bootstrap confidence interval over seeds (Agarwal et al. 2021; ``scipy.stats``).
+  stratified-bootstrap confidence interval over seeds (Agarwal et al. 2021, with their
+  ``rliable`` library; one task per env, so the strata are the env's runs).
+- Improvement table: per env, the probability that ES-TD3Buffers (paper ratio) beats each other
+  row on a run drawn at random from each (``rliable``'s probability of improvement, a
+  Mann-Whitney statistic), with its 95% stratified-bootstrap CI.
 - Learning curves: ``eval_return`` against TD3 frames, mean over seeds, min-max band shaded.
   OpenAI-ES has no TD3 frames; its checkpoints are drawn at the TD3 frames ES-TD3Buffers has
   at the same iteration (``(iteration + 1) x frames_per_iteration``).
@@ -20,8 +24,9 @@ import math
 from collections import defaultdict
 from pathlib import Path
 
+import warnings
+
 import numpy as np
-from scipy import stats
 
 from torchrl_esrl.run.metrics import read_metrics
 
@@ -32,7 +37,10 @@ ALGORITHM_LABELS = {
     "td3": "TD3",
     "es": "OpenAI-ES",
     "cem_rl": "CEM-RL",
+    "es_td3_buffers_soft": "ES-TD3Buffers (soft overwrite)",
+    "es_td3_shared_soft": "ES-TD3 (one shared buffer, soft overwrite)",
 }
+ES_TD3_BUFFERS = ("es_td3_buffers", "es_td3_buffers_soft")  # runs that have a good:bad:noisy ratio
 # ES-TD3 returns its ES mean, but the buffers act on its TD3 actor: the table and the curves also
 # show that actor (``final_td3_actor_return`` / ``td3_eval_return``) as a row of its own.
 TD3_ACTOR_SUFFIX = "/td3_actor"
@@ -46,7 +54,7 @@ def _seeds(count: int) -> str:
 def ratio_text(summary: dict) -> str:
     """``"0.5:0.2:0.3"`` for ES-TD3Buffers runs (runs at different ratios are different
     configurations: never pooled), ``""`` for every other algorithm."""
-    if summary["algorithm"] != "es_td3_buffers" or summary.get("ratio") is None:
+    if summary["algorithm"] not in ES_TD3_BUFFERS or summary.get("ratio") is None:
         return ""
     return ":".join(f"{float(r):g}" for r in summary["ratio"])
 
@@ -75,30 +83,56 @@ def find_runs(paths) -> list[dict]:
     return runs
 
 
+BOOTSTRAP_REPS = 2000  # rliable's default is 50,000; 2,000 keeps a report under a minute and the CI ends stable to ~1%
+
+
+def _rliable():
+    from rliable import library, metrics
+
+    return library, metrics
+
+
+def _interval(score_dict: dict, statistic, seed: int):
+    """rliable's stratified-bootstrap point estimate and 95% percentile CI of ``statistic``."""
+    library, _ = _rliable()
+    with warnings.catch_warnings():  # arch (under rliable) warns that RandomState is deprecated
+        warnings.simplefilter("ignore", FutureWarning)
+        points, intervals = library.get_interval_estimates(score_dict, statistic, reps=BOOTSTRAP_REPS, random_state=np.random.RandomState(seed))
+    (key,) = score_dict
+    return float(np.ravel(points[key])[0]), float(np.ravel(intervals[key])[0]), float(np.ravel(intervals[key])[-1])
+
+
 def interquartile_mean(values) -> float:
-    """Mean of the middle 50% (scipy's ``trim_mean`` with 25% cut on each side, as rliable)."""
-    return float(stats.trim_mean(np.asarray(values, dtype=float), 0.25))
+    """Mean of the middle 50% of the runs (rliable's ``aggregate_iqm``)."""
+    _, metrics = _rliable()
+    return float(metrics.aggregate_iqm(np.asarray(values, dtype=float).reshape(-1, 1)))
 
 
-def iqm_confidence_interval(values, confidence: float = 0.95, resamples: int = 2000, seed: int = 0) -> tuple[float, float]:
-    """Percentile-bootstrap CI of the IQM over seeds (NaN with fewer than 2 distinct values)."""
-    values = np.asarray(values, dtype=float)
+def iqm_confidence_interval(values, seed: int = 0) -> tuple[float, float]:
+    """95% stratified-bootstrap CI of the IQM over runs (NaN with fewer than 2 distinct values)."""
+    values = np.asarray(values, dtype=float).reshape(-1, 1)
     if values.size < 2 or np.unique(values).size < 2:
         return math.nan, math.nan
-    result = stats.bootstrap(
-        (values,),
-        lambda x, axis: stats.trim_mean(x, 0.25, axis=axis),
-        confidence_level=confidence,
-        n_resamples=resamples,
-        method="percentile",
-        rng=np.random.default_rng(seed),
-    )
-    return float(result.confidence_interval.low), float(result.confidence_interval.high)
+    _, metrics = _rliable()
+    _, low, high = _interval({"runs": values}, lambda scores: np.array([metrics.aggregate_iqm(scores)]), seed)
+    return low, high
 
 
-def results_table(runs: list[dict]) -> list[dict]:
-    """One row per (env, algorithm, ratio): statistics of ``final_return`` over its runs; for ES-TD3
-    runs a second row ``<algorithm>/td3_actor`` with the final return of their TD3 actor."""
+def probability_of_improvement(x, y, seed: int = 0) -> tuple[float, float, float]:
+    """P(X > Y) for a run of X and a run of Y drawn at random (ties count half), with its 95%
+    stratified-bootstrap CI (rliable). NaN CI with fewer than 2 runs on either side."""
+    x, y = (np.asarray(v, dtype=float).reshape(-1, 1) for v in (x, y))
+    _, metrics = _rliable()
+    point = float(metrics.probability_of_improvement(x, y))
+    if len(x) < 2 or len(y) < 2:
+        return point, math.nan, math.nan
+    _, low, high = _interval({"x,y": (x, y)}, metrics.probability_of_improvement, seed)
+    return point, low, high
+
+
+def table_groups(runs: list[dict]) -> dict[tuple[str, str, str], list[dict]]:
+    """The summaries of each table row, keyed ``(env, algorithm, ratio)``; ES-TD3 runs also give a
+    row ``<algorithm>/td3_actor`` whose ``final_return`` is their TD3 actor's."""
     groups: dict[tuple[str, str, str], list[dict]] = defaultdict(list)
     for run in runs:
         summary, ratio = run["summary"], ratio_text(run["summary"])
@@ -106,8 +140,14 @@ def results_table(runs: list[dict]) -> list[dict]:
         if "final_td3_actor_return" in summary:
             actor = {**summary, "final_return": summary["final_td3_actor_return"]}
             groups[(summary["env"], summary["algorithm"] + TD3_ACTOR_SUFFIX, ratio)].append(actor)
+    return groups
+
+
+def results_table(runs: list[dict]) -> list[dict]:
+    """One row per (env, algorithm, ratio): statistics of ``final_return`` over its runs (and the
+    TD3-actor rows of :func:`table_groups`)."""
     rows = []
-    for (env, algorithm, ratio), summaries in sorted(groups.items()):
+    for (env, algorithm, ratio), summaries in sorted(table_groups(runs).items()):
         finals = np.array([s["final_return"] for s in summaries], dtype=float)
         low, high = iqm_confidence_interval(finals)
         rows.append(
@@ -129,19 +169,27 @@ def results_table(runs: list[dict]) -> list[dict]:
     return rows
 
 
+def _write_csv(path: Path, columns, rows: list[dict]) -> None:
+    with path.open("w", newline="") as handle:
+        writer = csv.DictWriter(handle, fieldnames=columns)
+        writer.writeheader()
+        writer.writerows(rows)
+
+
+def _ci_text(low: float, high: float, digits: int) -> str:
+    return "n/a" if math.isnan(low) else f"[{low:.{digits}f}, {high:.{digits}f}]"
+
+
 def write_table(rows: list[dict], out_dir: Path) -> tuple[Path, Path]:
     """``results.csv`` and ``results.md`` (Table 1 layout: env x algorithm, mean / std / median)."""
     csv_path, md_path = out_dir / "results.csv", out_dir / "results.md"
-    with csv_path.open("w", newline="") as handle:
-        writer = csv.DictWriter(handle, fieldnames=TABLE_COLUMNS)
-        writer.writeheader()
-        writer.writerows(rows)
+    _write_csv(csv_path, TABLE_COLUMNS, rows)
     lines = [
         "| env | algorithm | runs | TD3 frames | ES frames | mean | std | median | IQM [95% CI] |",
         "|---|---|---:|---:|---:|---:|---:|---:|---|",
     ]
     for r in rows:
-        ci = "n/a" if math.isnan(r["iqm_ci_low"]) else f"[{r['iqm_ci_low']:.1f}, {r['iqm_ci_high']:.1f}]"
+        ci = _ci_text(r["iqm_ci_low"], r["iqm_ci_high"], 1)
         lines.append(f"| {r['env']} | {label(r['algorithm'], r['ratio'])} | {r['runs']} | {r['td3_frames']} | {r['es_frames']} | {r['mean']:.1f} | {r['std']:.1f} | {r['median']:.1f} | {r['iqm']:.1f} {ci} |")
     lines += [
         "",
@@ -149,6 +197,47 @@ def write_table(rows: list[dict], out_dir: Path) -> tuple[Path, Path]:
         "its TD3 actor on the `: its TD3 actor` rows). TD3 frames (gradient-based learner's environment",
         "steps) and ES frames (evolution's evaluation episodes) are counted separately: ES-TD3 variants",
         "spend both, so at equal TD3 frames they have used many more environment frames in total.",
+    ]
+    md_path.write_text("\n".join(lines) + "\n")
+    return csv_path, md_path
+
+
+IMPROVEMENT_COLUMNS = ("env", "algorithm", "ratio", "other_algorithm", "other_ratio", "runs", "other_runs", "probability", "ci_low", "ci_high")
+
+
+def improvement_table(runs: list[dict], reference: tuple[str, str] = ("es_td3_buffers", PAPER_RATIO)) -> list[dict]:
+    """Per env: probability of improvement of ``reference`` (algorithm, ratio) over every other
+    row of the results table, with its 95% stratified-bootstrap CI (rliable). Envs without
+    reference runs give no rows."""
+    groups = table_groups(runs)
+    rows = []
+    for env in sorted({key[0] for key in groups}):
+        mine = groups.get((env, *reference))
+        if not mine:
+            continue
+        x = [s["final_return"] for s in mine]
+        for (other_env, algorithm, ratio), summaries in sorted(groups.items()):
+            if other_env != env or (algorithm, ratio) == reference:
+                continue
+            y = [s["final_return"] for s in summaries]
+            probability, low, high = probability_of_improvement(x, y)
+            rows.append({"env": env, "algorithm": reference[0], "ratio": reference[1], "other_algorithm": algorithm, "other_ratio": ratio, "runs": len(x), "other_runs": len(y), "probability": probability, "ci_low": low, "ci_high": high})
+    return rows
+
+
+def write_improvement_table(rows: list[dict], out_dir: Path) -> tuple[Path, Path]:
+    """``improvement.csv`` and ``improvement.md``: P(ES-TD3Buffers > row) per env, with CI."""
+    csv_path, md_path = out_dir / "improvement.csv", out_dir / "improvement.md"
+    _write_csv(csv_path, IMPROVEMENT_COLUMNS, rows)
+    lines = ["| env | P(ES-TD3Buffers > row) | row | runs (ES-TD3Buffers / row) | 95% CI |", "|---|---:|---|---|---|"]
+    for r in rows:
+        ci = _ci_text(r["ci_low"], r["ci_high"], 2)
+        lines.append(f"| {r['env']} | {r['probability']:.2f} | {label(r['other_algorithm'], r['other_ratio'])} | {r['runs']} / {r['other_runs']} | {ci} |")
+    lines += [
+        "",
+        f"Probability of improvement (Agarwal et al. 2021, rliable): the chance that a run of ES-TD3Buffers {PAPER_RATIO}",
+        "ends with a higher final return than a run of the row, ties counting half; 0.5 = no difference.",
+        "A CI that excludes 0.5 is a difference at the 95% level. CIs: stratified bootstrap over runs.",
     ]
     md_path.write_text("\n".join(lines) + "\n")
     return csv_path, md_path
@@ -165,10 +254,7 @@ def write_runs_table(runs: list[dict], out_dir: Path) -> tuple[Path, Path]:
         rows.append({**{key: s.get(key, "") for key in RUN_COLUMNS}, "ratio": ratio_text(s), "dir": str(run["dir"])})
     rows.sort(key=lambda r: (r["env"], r["algorithm"], r["ratio"], r["seed"]))
     csv_path, md_path = out_dir / "runs.csv", out_dir / "runs.md"
-    with csv_path.open("w", newline="") as handle:
-        writer = csv.DictWriter(handle, fieldnames=RUN_COLUMNS)
-        writer.writeheader()
-        writer.writerows(rows)
+    _write_csv(csv_path, RUN_COLUMNS, rows)
 
     def number(value, digits=1):
         return f"{value:.{digits}f}" if isinstance(value, (int, float)) else "-"
@@ -297,14 +383,15 @@ def plot_es_vs_td3(runs: list[dict], out_dir: Path) -> list[Path]:
     paths = []
     by_env: dict[str, list[dict]] = defaultdict(list)
     for run in runs:
-        if run["summary"]["algorithm"] == "es_td3_buffers" and run["metrics"] and "td3_eval_return" in run["metrics"][0]:
+        if run["summary"]["algorithm"] in ES_TD3_BUFFERS and run["metrics"] and "td3_eval_return" in run["metrics"][0]:
             by_env[run["summary"]["env"]].append(run)
     for env, group in sorted(by_env.items()):
-        group = sorted(group, key=lambda r: (ratio_text(r["summary"]), r["summary"]["seed"]))
+        group = sorted(group, key=lambda r: (r["summary"]["algorithm"], ratio_text(r["summary"]), r["summary"]["seed"]))
         fig, axes = plt.subplots(1, len(group), figsize=(4 * len(group), 3.6), squeeze=False, sharey=True)
         for ax, run in zip(axes[0], group):
             _draw_es_vs_td3(ax, run)
-            ax.set_title(f"seed {run['summary']['seed']}, ratio {ratio_text(run['summary'])}", fontsize=9)
+            soft = ", soft overwrite" if run["summary"]["algorithm"].endswith("_soft") else ""
+            ax.set_title(f"seed {run['summary']['seed']}, ratio {ratio_text(run['summary'])}{soft}", fontsize=9)
         axes[0][0].set_ylabel("evaluation return")
         handles, labels = [], []
         for ax in axes[0]:
@@ -326,7 +413,7 @@ def plot_ratio_sweep(runs: list[dict], out_dir: Path) -> list[Path]:
     paths = []
     by_env: dict[str, dict[str, list[dict]]] = defaultdict(lambda: defaultdict(list))
     for run in runs:
-        if ratio_text(run["summary"]):
+        if run["summary"]["algorithm"] == "es_td3_buffers" and ratio_text(run["summary"]):  # the hard overwrite of Algorithm 1
             by_env[run["summary"]["env"]][ratio_text(run["summary"])].append(run["summary"])
     series = (("final_return", "ES mean (returned)", "o", -0.12), ("final_td3_actor_return", "TD3 actor", "s", 0.12))
     for env, by_ratio in sorted(by_env.items()):
@@ -352,6 +439,49 @@ def plot_ratio_sweep(runs: list[dict], out_dir: Path) -> list[Path]:
     return paths
 
 
+def plot_hard_vs_soft(runs: list[dict], out_dir: Path) -> list[Path]:
+    """Per env with both: ES-TD3Buffers with the hard overwrite (Algorithm 1) against the soft one
+    (Section 5). Left: the returned policy's evaluation return, mean over seeds with the seeds'
+    min-max band (the variance the soft overwrite is meant to reduce); right: final return per
+    seed, with the number of overwrites each run made next to its dot."""
+    plt = _pyplot()
+
+    paths = []
+    by_env: dict[str, dict[str, list[dict]]] = defaultdict(lambda: defaultdict(list))
+    for run in runs:
+        s = run["summary"]
+        if s["algorithm"] in ES_TD3_BUFFERS and ratio_text(s) == PAPER_RATIO and run["metrics"]:
+            by_env[s["env"]][s["algorithm"]].append(run)
+    for env, by_mode in sorted(by_env.items()):
+        if len(by_mode) < 2:
+            continue
+        fig, (curves, finals) = plt.subplots(1, 2, figsize=(11, 4), gridspec_kw={"width_ratios": [2, 1]})
+        for i, algorithm in enumerate(ES_TD3_BUFFERS):
+            group = by_mode[algorithm]
+            length = min(len(run["metrics"]) for run in group)
+            x = _curve_x(group[0])[:length]
+            returns = np.array([[row["eval_return"] for row in run["metrics"][:length]] for run in group], dtype=float)
+            name = f"{label(algorithm)} ({_seeds(len(group))})"
+            curves.plot(x, returns.mean(axis=0), marker="o", markersize=3, color=f"C{i}", label=name)
+            curves.fill_between(x, returns.min(axis=0), returns.max(axis=0), color=f"C{i}", alpha=0.2)
+            values = [run["summary"]["final_return"] for run in group]
+            finals.scatter(np.full(len(values), i), values, color=f"C{i}", s=18)
+            for value, run in zip(values, group):
+                finals.annotate(str(run["summary"].get("overwrites", "")), (i, value), textcoords="offset points", xytext=(6, -3), fontsize=7)
+            finals.hlines(interquartile_mean(values), i - 0.2, i + 0.2, color=f"C{i}")
+        curves.set_xlabel("TD3 frames")
+        curves.set_ylabel("evaluation return (returned ES mean)")
+        curves.grid(alpha=0.3)
+        curves.legend(fontsize=8, loc="best")
+        finals.set_xticks(range(len(ES_TD3_BUFFERS)), ["hard", "soft"])
+        finals.set_xlim(-0.6, len(ES_TD3_BUFFERS) - 0.4)
+        finals.set_ylabel("final return (line: IQM; numbers: overwrites)")
+        finals.grid(alpha=0.3)
+        fig.suptitle(f"{env}: hard vs soft overwrite, ES-TD3Buffers {PAPER_RATIO} (band: seeds' min-max)", fontsize=10)
+        paths.append(_save(fig, out_dir / f"hard_vs_soft_{env}.png"))
+    return paths
+
+
 def make_report(paths, out_dir) -> dict:
     """Everything: the table (csv + md) and the PNGs; returns what was written."""
     out_dir = Path(out_dir)
@@ -362,5 +492,7 @@ def make_report(paths, out_dir) -> dict:
     rows = results_table(runs)
     csv_path, md_path = write_table(rows, out_dir)
     write_runs_table(runs, out_dir)
-    figures = plot_learning_curves(runs, out_dir) + plot_es_vs_td3(runs, out_dir) + plot_ratio_sweep(runs, out_dir)
-    return {"runs": len(runs), "rows": rows, "table_csv": csv_path, "table_md": md_path, "figures": figures}
+    improvement = improvement_table(runs)
+    improvement_csv, improvement_md = write_improvement_table(improvement, out_dir)
+    figures = plot_learning_curves(runs, out_dir) + plot_es_vs_td3(runs, out_dir) + plot_ratio_sweep(runs, out_dir) + plot_hard_vs_soft(runs, out_dir)
+    return {"runs": len(runs), "rows": rows, "table_csv": csv_path, "table_md": md_path, "improvement": improvement, "improvement_csv": improvement_csv, "improvement_md": improvement_md, "figures": figures}

@@ -4,6 +4,10 @@ After each iteration the TD3 actor and the ES mean are evaluated. If TD3's evalu
 averaged over the last ``window`` iterations, beats the ES mean's average over the same
 iterations, the ES mean becomes the TD3 actor's parameters. Averages damp the occasional
 collapse of either learner between updates, as the paper describes.
+
+``mode="soft"`` is the fix Section 5 proposes for the variance hard overwrites cause: when the
+rule fires, the mean moves only part-way, ``mean <- (1 - mix) * mean + mix * td3_actor``
+(:meth:`OpenES.set_mean` with ``mix``); ``mode="hard"`` is ``mix = 1``, Algorithm 1.
 """
 from __future__ import annotations
 
@@ -29,12 +33,17 @@ class OverwriteDecision:
 
 
 class OverwriteRule:
-    """Decides, once per iteration, whether the ES mean is replaced by the TD3 actor."""
+    """Decides, once per iteration, whether the ES mean is recentred on the TD3 actor, and by how
+    much: :attr:`mix` is the share of the TD3 actor in the new mean (1 for a hard overwrite)."""
 
-    def __init__(self, window: int = 3):
+    def __init__(self, window: int, mode: str, mix: float):
         if window < 1:
             raise ValueError(f"overwrite.window must be >= 1, got {window}")
+        if mode not in ("hard", "soft") or not 0 < mix <= 1:
+            raise ValueError(f"overwrite.mode must be hard or soft and overwrite.mix in (0, 1], got {mode!r}, {mix}")
         self.window = int(window)
+        self.mode = mode
+        self.mix = 1.0 if mode == "hard" else float(mix)
         self.td3_returns: deque[float] = deque(maxlen=self.window)
         self.es_returns: deque[float] = deque(maxlen=self.window)
         self.decisions: list[OverwriteDecision] = []

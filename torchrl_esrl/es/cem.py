@@ -1,15 +1,20 @@
 """CEM-RL (Pourchot and Sigaud, "CEM-RL: Combining evolutionary and gradient-based methods for
-policy search", ICLR 2019), the baseline of ``recipes/cem_rl.py``.
+policy search", ICLR 2019), the baseline of ``recipes/cem_rl.py``, following the authors' code
+(``ES.py`` class ``sepCEM``, ``es_grad.py``).
 
 :class:`DiagonalCEM` is the cross-entropy method over the actor's flat parameters with a
-diagonal covariance (their Algorithm 1): sample ``z_i ~ N(mu, diag(var))``; the top half by
-return are the elites, weighted ``lambda_i ∝ log((K + 1) / i)`` for rank i of K elites;
+diagonal covariance (``sepCEM``): sample ``z_i = mu + sqrt(var) * eps_i`` (antithetic pairs
+``+eps, -eps`` for an even population); the top ``K`` by return are the parents, weighted
+``lambda_i ∝ log((K + 1) / i)`` for rank i; the damping decays first, then
 
     mu_new  = sum_i lambda_i z_i
-    var_new = sum_i lambda_i (z_i - mu_old)^2 + eps,     eps <- tau eps + (1 - tau) eps_end
+    var_new = 1/K * sum_i lambda_i (z_i - mu_old)^2 + eps,     eps <- tau eps + (1 - tau) eps_end
 
-:func:`td3_improve_member` is the RL half: before evaluation, half of the population is loaded
-into the TD3 actor (targets too), trained against the shared critic, and written back.
+``sigma_init`` is the initial *variance* of every coordinate, as in the reference code.
+
+:func:`cem_rl_gradient_steps` is the RL half of one generation: for each of the first
+``rl_members`` members, load it into the TD3 actor (and its target) with a fresh Adam, run
+``F // rl_members`` critic steps, then ``F`` actor steps, F = frames of the previous generation.
 """
 from __future__ import annotations
 
@@ -31,10 +36,11 @@ class DiagonalCEM:
     Args:
         mean: initial mean (``flat_parameters(actor)``).
         population_size: samples per generation.
-        sigma_init: initial standard deviation of every coordinate (CEM-RL: 1e-3).
+        sigma_init: initial variance of every coordinate (reference ``sigma_init``: 1e-3).
         elite_fraction: share of the population that updates the distribution (CEM-RL: 0.5).
         damping_init, damping_end, damping_tau: the variance floor eps added each update and its
-            exponential decay (CEM-RL: 1e-3, 1e-5, 0.95).
+            exponential decay, applied before the update (reference: 1e-3, 1e-5, 0.95).
+        antithetic: mirrored samples ``+eps, -eps`` (the reference uses them for even populations).
         generator: torch RNG of the samples.
     """
 
@@ -47,24 +53,30 @@ class DiagonalCEM:
         damping_init: float = 1e-3,
         damping_end: float = 1e-5,
         damping_tau: float = 0.95,
+        antithetic: bool = True,
         generator: torch.Generator | None = None,
     ):
         if population_size < 2:
             raise ValueError(f"cem.population_size must be >= 2, got {population_size}")
         self.mean = mean.detach().clone().float().reshape(-1)
-        self.var = torch.full_like(self.mean, float(sigma_init) ** 2)
+        self.var = torch.full_like(self.mean, float(sigma_init))  # a variance, as the reference reads it
         self.population_size = int(population_size)
         self.num_elites = max(1, int(round(population_size * elite_fraction)))
         self.weights = elite_weights(self.num_elites)
         self.damping = float(damping_init)
         self.damping_end = float(damping_end)
         self.damping_tau = float(damping_tau)
+        self.antithetic = bool(antithetic) and self.population_size % 2 == 0
         self.generator = generator if generator is not None else torch.Generator().manual_seed(0)
         self.generation = 0
 
     def ask(self) -> torch.Tensor:
         """Sample ``[population_size, D]`` actors from N(mean, diag(var))."""
-        eps = torch.randn(self.population_size, self.mean.numel(), generator=self.generator)
+        if self.antithetic:
+            half = torch.randn(self.population_size // 2, self.mean.numel(), generator=self.generator)
+            eps = torch.cat([half, -half])
+        else:
+            eps = torch.randn(self.population_size, self.mean.numel(), generator=self.generator)
         return self.mean + self.var.sqrt() * eps
 
     def tell(self, population: torch.Tensor, returns: torch.Tensor) -> torch.Tensor:
@@ -76,9 +88,9 @@ class DiagonalCEM:
         elites = returns.argsort(descending=True, stable=True)[: self.num_elites]
         z = population[elites].float()
         old_mean = self.mean
+        self.damping = self.damping_tau * self.damping + (1 - self.damping_tau) * self.damping_end  # decayed before use
         self.mean = self.weights @ z
-        self.var = self.weights @ (z - old_mean) ** 2 + self.damping
-        self.damping = self.damping_tau * self.damping + (1 - self.damping_tau) * self.damping_end
+        self.var = self.weights @ (z - old_mean) ** 2 / self.num_elites + self.damping
         self.generation += 1
         return elites
 
@@ -99,9 +111,41 @@ def load_actor_and_target(td3, vector: torch.Tensor) -> None:
     td3.actor_optimizer.state.clear()
 
 
-def td3_improve_member(td3, buffer, vector: torch.Tensor, updates: int) -> tuple[torch.Tensor, list[float]]:
-    """CEM-RL's RL step for one member: ``updates`` TD3 updates (shared critic, this member as
-    actor) on batches of ``buffer``; returns the trained flat parameters and the critic losses."""
-    load_actor_and_target(td3, vector)
-    critic_losses = [td3.update(buffer.sample())["critic_loss"] for _ in range(int(updates))]
-    return flat_parameters(td3.actor).to(vector.device), critic_losses  # back to where the population lives (CPU)
+def _gradient_step(name: str, loss_fn, optimizer, target, source, batch, tau: float, member: int) -> float:
+    """One Adam step on ``loss_fn(batch)``, then the soft update of that network's target only."""
+    value, _ = loss_fn(batch)
+    if not torch.isfinite(value):
+        raise FloatingPointError(f"CEM-RL {name} loss is {value.item()} while training member {member}")
+    optimizer.zero_grad(set_to_none=True)
+    value.backward()
+    optimizer.step()
+    with torch.no_grad():
+        target.data.lerp_(source.data, tau)
+    return value.item()
+
+
+def cem_rl_gradient_steps(td3, buffer, population: torch.Tensor, rl_members: int, frames: int, tau: float) -> dict:
+    """The RL half of one CEM-RL generation (reference ``es_grad.py``), in place on ``population``.
+
+    For each of the first ``rl_members`` members: load it into the actor and the actor target,
+    clear the actor's Adam (a fresh optimiser); ``frames // rl_members`` critic steps (TD3's twin
+    critic loss with target smoothing, critic target soft-updated), then ``frames`` actor steps
+    (``-Q1(s, pi(s))``, actor target soft-updated); write the actor back into the population.
+    The critic and its Adam are shared across members and generations. ``frames`` is F, the
+    number of frames the previous generation played. Returns the step counts and critic losses.
+    """
+    loss = td3.loss
+    critic = ("critic", loss.value_loss, td3.critic_optimizer, loss.target_qvalue_network_params, loss.qvalue_network_params)
+    actor = ("actor", loss.actor_loss, td3.actor_optimizer, loss.target_actor_network_params, loss.actor_network_params)
+    critic_steps, actor_steps, critic_losses = 0, 0, []
+    for member in range(int(rl_members)):
+        load_actor_and_target(td3, population[member])
+        for _ in range(int(frames) // int(rl_members)):
+            critic_losses.append(_gradient_step(*critic, buffer.sample(), tau, member))
+            critic_steps += 1
+        for _ in range(int(frames)):
+            _gradient_step(*actor, buffer.sample(), tau, member)
+            actor_steps += 1
+        population[member] = flat_parameters(td3.actor)
+    td3.updates += critic_steps
+    return {"critic_steps": critic_steps, "actor_steps": actor_steps, "critic_losses": critic_losses}

@@ -103,13 +103,14 @@ class OpenES:
         return grad
 
     @torch.no_grad()
-    def set_mean(self, vector: torch.Tensor, reset_optimizer: bool = False) -> None:
-        """Overwrite the mean in place (the overwrite rule).
+    def set_mean(self, vector: torch.Tensor, reset_optimizer: bool = False, mix: float = 1.0) -> None:
+        """Move the mean in place to ``(1 - mix) * mean + mix * vector`` (the overwrite rule:
+        ``mix=1`` replaces it, Algorithm 1; ``mix<1`` is Section 5's soft overwrite).
 
         With ``reset_optimizer`` Adam's moments and step count are cleared: they describe the
         path of the old mean, not the region the new one starts in.
         """
-        self.mean.copy_(vector.reshape(-1))
+        self.mean.lerp_(vector.reshape(-1).to(self.mean.dtype), float(mix))
         if reset_optimizer:
             self.optimizer.state.clear()
 

@@ -20,6 +20,7 @@ LOSS_FUNCTIONS = ("l2", "l1", "smooth_l1")  # torchrl.objectives.utils.distance_
 FITNESS_SHAPINGS = ("centered_ranks", "none")  # torchrl_esrl.es.openes.OpenES
 BUFFER_MODES = ("multi", "shared")
 MODES = ("sequential", "async")
+OVERWRITE_MODES = ("hard", "soft")
 # logger.backend -> the package its TorchRL logger needs ("" = no logger, csv = no extra package)
 LOGGER_PACKAGES = {"": None, "csv": None, "tensorboard": "tensorboard", "wandb": "wandb", "mlflow": "mlflow", "trackio": "trackio"}
 SEED_LIMIT = 2**31 - 2000  # numpy seeds are < 2**32; the recipes add up to 1000 for their streams
@@ -137,6 +138,9 @@ def validate_config(cfg) -> None:
     _choice(cfg, "buffer.mode", BUFFER_MODES)
     _number(cfg, "threshold.fraction", low=0, high=1)
     _choice(cfg, "mode", MODES)
+    _choice(cfg, "overwrite.mode", OVERWRITE_MODES)
+    _number(cfg, "overwrite.mix", low=0, high=1, low_open=True)
+    _number(cfg, "td3.random_frames", low=0, integer=True)
 
     # Run plumbing: logger, checkpoints
     _choice(cfg, "logger.backend", list(LOGGER_PACKAGES))
@@ -153,6 +157,7 @@ def validate_config(cfg) -> None:
         for field in ("cem.damping_init", "cem.damping_end"):
             _number(cfg, field, low=0)
         _number(cfg, "cem.damping_tau", low=0, high=1)
+        _number(cfg, "cem.start_frames", low=0, integer=True)
 
 
 def _is_host_port(address) -> bool:

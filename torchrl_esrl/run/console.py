@@ -13,6 +13,8 @@ from omegaconf import DictConfig, OmegaConf
 RETURNED = {
     "es_td3_buffers": "ES mean",
     "es_td3_shared": "ES mean",
+    "es_td3_buffers_soft": "ES mean",
+    "es_td3_shared_soft": "ES mean",
     "td3": "TD3 actor",
     "es": "ES mean",
     "cem_rl": "CEM mean",

@@ -16,6 +16,7 @@ from torchrl_esrl.es.openes import OpenES
 from torchrl_esrl.collectors.es_collector import ESCollector
 from torchrl_esrl.modules.networks import flat_parameters, make_actor, make_critic
 from torchrl_esrl.algorithm.es_phase import ESPhase
+from torchrl_esrl.modules.warmup import RandomWarmup
 from torchrl_esrl.algorithm.overwrite import OverwriteRule
 from torchrl_esrl.collectors.td3_collector import make_td3_collector
 from torchrl_esrl.objectives.td3 import TD3
@@ -45,8 +46,10 @@ def cpu_actor(actor):
 
 
 def make_td3(cfg: DictConfig, actor, critic, action_spec) -> TD3:
+    """TD3; with ``td3.random_frames`` > 0 its behaviour policy acts uniformly at random for that
+    many frames first (Fujimoto's ``start_timesteps``, :class:`RandomWarmup`)."""
     c = cfg.td3
-    return TD3(
+    td3 = TD3(
         actor,
         critic,
         action_spec.to(cfg.device),
@@ -60,11 +63,16 @@ def make_td3(cfg: DictConfig, actor, critic, action_spec) -> TD3:
         loss_function=c.loss_function,
         fast=c.fast,
     )
+    if c.random_frames > 0:
+        td3.exploration_policy = RandomWarmup(td3.exploration_policy, action_spec, c.random_frames, seed=int(cfg.seed) + 3)
+    return td3
 
 
 def make_td3_batches(cfg: DictConfig, env, td3: TD3):
     """The TD3 collector and an iterator over it that lives across iterations."""
     collector = make_td3_collector(env, td3, cfg.td3.frames_per_batch, device=cfg.device)
+    if isinstance(td3.exploration_policy, RandomWarmup):
+        td3.exploration_policy.reset()  # undo the Collector's probing call: the warm-up starts at frame 0
     return collector, iter(collector)
 
 
@@ -111,6 +119,7 @@ def make_cem(cfg: DictConfig, actor):
         damping_init=c.damping_init,
         damping_end=c.damping_end,
         damping_tau=c.damping_tau,
+        antithetic=c.antithetic,
         generator=torch.Generator().manual_seed(int(cfg.seed) + 1),
     )
 
@@ -134,4 +143,4 @@ def make_es_phase(cfg: DictConfig, es: OpenES, es_collector: ESCollector, buffer
 
 
 def make_overwrite_rule(cfg: DictConfig) -> OverwriteRule:
-    return OverwriteRule(window=cfg.overwrite.window)
+    return OverwriteRule(window=cfg.overwrite.window, mode=cfg.overwrite.mode, mix=cfg.overwrite.mix)

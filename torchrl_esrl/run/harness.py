@@ -7,16 +7,20 @@ One evaluation protocol for all algorithms (ES-TD3Buffers, TD3, OpenAI-ES, CEM-R
   ``eval.episodes`` episodes, on its own seed stream, and written to ``metrics.csv`` as
   ``eval_return`` next to the core columns :data:`CORE_COLUMNS`;
 - at the end, the returned policy is evaluated over ``eval.final_episodes`` episodes and
-  ``summary.json`` records it as ``final_return`` with ``algorithm``, ``env`` and ``seed``.
+  ``summary.json`` records it as ``final_return`` with ``algorithm``, ``env`` and ``seed``. These
+  episodes have a seed stream of their own (:func:`final_episode_seeds`, a function of the run's
+  seed only): they never repeat the per-iteration episodes, and every policy a run reports at
+  the end (ES-TD3Buffers: the ES mean and the TD3 actor) plays the same final episodes.
 
 Evaluation frames are counted in neither ``td3_frames`` nor ``es_frames``.
 """
 from __future__ import annotations
 
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 
+import numpy as np
 import torch
 from omegaconf import DictConfig
 
@@ -27,6 +31,12 @@ from torchrl_esrl.report import plot_run
 from torchrl_esrl.run.determinism import seed_everything
 from torchrl_esrl.run.factories import cpu_actor
 from torchrl_esrl.run.metrics import MetricsLog, write_json
+
+
+def final_episode_seeds(seed: int, episodes: int) -> list[int]:
+    """Reset seeds of the final evaluation: a stream keyed by ``(seed, "final")``, apart from the
+    per-iteration evaluation stream (``seed + 1000``) and from every training stream."""
+    return np.random.default_rng([int(seed), 0x46494E]).integers(0, 2**31 - 1, size=int(episodes)).tolist()
 
 
 class RunHarness:
@@ -62,21 +72,24 @@ class RunHarness:
     def attach_actor(self, actor) -> None:
         """Build the evaluator for ``actor``'s architecture (its own episode-seed stream), and
         evaluate ``actor`` as built, before any training, with the protocol of the final evaluation
-        (``eval.final_episodes`` deterministic episodes): ``initial_return`` in ``summary.json``,
-        the baseline the returned policy is compared with. Its episodes have their own seeds, so
-        the evaluation stream of the run is the same with or without it."""
+        (the same ``eval.final_episodes`` episodes): ``initial_return`` in ``summary.json``, the
+        baseline the returned policy is compared with. The per-iteration evaluation stream is not
+        drawn from."""
         cfg = self.cfg
         self.evaluator = ESCollector(cfg.env.id, cpu_actor(actor), backend="gym", max_episode_steps=cfg.env.max_episode_steps, seed=int(cfg.seed) + 1000)
-        episodes = int(cfg.eval.final_episodes)
-        seeds = [int(cfg.seed) + 1_000_000 + i for i in range(episodes)]  # fixed episode seeds: the evaluation stream is not drawn from
-        self.initial_return = self.evaluator.evaluate_policy(flat_parameters(actor).detach().cpu(), episodes, seeds=seeds).returns.mean().item()
+        self.initial_return = self.evaluate_final(flat_parameters(actor))
 
-    def evaluate(self, vector: torch.Tensor, episodes: int | None = None) -> float:
-        """Mean return of the deterministic actor with flat parameters ``vector``."""
+    def evaluate(self, vector: torch.Tensor, episodes: int | None = None, seeds: Sequence[int] | None = None) -> float:
+        """Mean return of the deterministic actor with flat parameters ``vector`` (episode seeds
+        from the per-iteration stream unless ``seeds`` are given)."""
         if self.evaluator is None:
             raise RuntimeError("RunHarness.attach_actor must be called before evaluate")
-        episodes = int(episodes or self.cfg.eval.episodes)
-        return self.evaluator.evaluate_policy(vector.detach().cpu(), episodes).returns.mean().item()
+        episodes = len(seeds) if seeds is not None else int(episodes or self.cfg.eval.episodes)
+        return self.evaluator.evaluate_policy(vector.detach().cpu(), episodes, seeds=seeds).returns.mean().item()
+
+    def evaluate_final(self, vector: torch.Tensor) -> float:
+        """Mean return over the ``eval.final_episodes`` episodes of the final evaluation's own stream."""
+        return self.evaluate(vector, seeds=final_episode_seeds(self.cfg.seed, self.cfg.eval.final_episodes))
 
     def log(self, iteration: int, td3_frames: int, es_frames: int, eval_return: float, **extra) -> dict:
         """One row of ``metrics.csv`` (and of the TorchRL logger): the core columns, then ``extra``
@@ -111,7 +124,7 @@ class RunHarness:
             "frames_per_iteration": int(cfg.td3.frames_per_iteration),
             "td3_frames": self.last_row.get("td3_frames", 0),
             "es_frames": self.last_row.get("es_frames", 0),
-            "final_return": self.evaluate(returned, cfg.eval.final_episodes),
+            "final_return": self.evaluate_final(returned),
             "final_episodes": int(cfg.eval.final_episodes),
             **dict(extra or {}),
         }

@@ -39,6 +39,7 @@ class TD3Config:
     critic_hidden: List[int] = MISSING
     critic_activation: str = MISSING
     fast: bool = MISSING
+    random_frames: int = MISSING
 
 
 @dataclass
@@ -78,6 +79,8 @@ class ThresholdConfig:
 class OverwriteConfig:
     window: int = MISSING
     reset_optimizer: bool = MISSING
+    mode: str = MISSING
+    mix: float = MISSING
 
 
 @dataclass
@@ -121,6 +124,8 @@ class CEMConfig:
     damping_init: float = MISSING
     damping_end: float = MISSING
     damping_tau: float = MISSING
+    antithetic: bool = MISSING
+    start_frames: int = MISSING
 
 
 @dataclass

@@ -1,0 +1,70 @@
+#!/usr/bin/env bash
+# The experiment set behind docs/results.md, "Does the multi-buffer help?": experiment=multibuffer
+# (conf/experiment/multibuffer.yaml states the budget and its assumed cost), one torch thread per run,
+# parallel_jobs runs at a time (default 2: one per core of a 2-core machine).
+#   HalfCheetah-v5 and Walker2d-v5, seeds 0-4 of: ES-TD3Buffers 0.5:0.2:0.3; one shared buffer
+#   (buffer.mode=shared); soft overwrite (overwrite.mode=soft, mix 0.5); TD3 (Fujimoto's uniform warm-up,
+#   K = 5,000 frames: conf/td3.yaml); CEM-RL (one 10-member generation per iteration, 4 x 10,000 frames,
+#   start_frames scaled to 5,000); OpenAI-ES.  Ratio sweep on HalfCheetah: 0.2:0.2:0.6 and 0.8:0.1:0.1,
+#   seeds 0-2 (0.5:0.2:0.3 comes from the main rows).  Runs start seed by seed, so a partial set is balanced.
+#
+# Resumes from what exists: a run whose record is already in $RESULTS is skipped; one that finished in
+# work_dir is recorded; one killed after a checkpoint continues from it (same hydra.run.dir); one killed
+# before any checkpoint starts over. Every finished run's metrics.csv, summary.json and config.yaml are
+# copied to $RESULTS/<env>/<row>_seed<k>/ (commit them; COMMIT=1 commits each one as it lands).
+#
+# Usage: scripts/multibuffer_experiments.sh [work_dir] [parallel_jobs] [extra hydra overrides...]
+#   RESULTS=docs/results/runs/multibuffer  PYTHON=python  COMMIT=0      (environment, defaults shown)
+#   ONLY=<regex> runs only the lines 'env row recipe seed ...' it matches, e.g. ONLY='^walker2d td3 '
+#   Report: python recipes/report.py docs/results/runs/multibuffer --out docs/results/multibuffer
+set -u
+WORK=${1:-runs_multibuffer}
+JOBS=${2:-2}
+shift $(( $# < 2 ? $# : 2 ))
+cd "$(dirname "$0")/.."
+export WORK EXTRA="$*" RESULTS=${RESULTS:-docs/results/runs/multibuffer} PYTHON=${PYTHON:-python} COMMIT=${COMMIT:-0}
+ONLY=${ONLY:-.}
+mkdir -p "$WORK" "$RESULTS"
+
+runs() {  # env row recipe seed [overrides...], one run per line, in the order they start
+  for seed in 0 1 2 3 4; do
+    for env in halfcheetah walker2d; do
+      echo "$env es_td3 es_td3.py $seed"
+      echo "$env es_td3_shared es_td3.py $seed buffer.mode=shared"
+      echo "$env es_td3_soft es_td3.py $seed overwrite.mode=soft overwrite.mix=0.5"
+      echo "$env td3 td3.py $seed"
+      echo "$env cem_rl cem_rl.py $seed iterations=4 td3.frames_per_iteration=10000 cem.start_frames=5000"
+      echo "$env es es.py $seed"
+    done
+    if [ "$seed" -le 2 ]; then
+      echo "halfcheetah es_td3_ratio_0.2_0.2_0.6 es_td3.py $seed buffer.ratio=[0.2,0.2,0.6]"
+      echo "halfcheetah es_td3_ratio_0.8_0.1_0.1 es_td3.py $seed buffer.ratio=[0.8,0.1,0.1]"
+    fi
+  done
+}
+
+run_one() {
+  env=$1; row=$2; recipe=$3; seed=$4; shift 4
+  name=${row}_seed$seed
+  dest=$RESULTS/$env/$name
+  dir=$WORK/$env/$name
+  if [ -f "$dest/summary.json" ]; then echo "$env $name: recorded, skipped"; return 0; fi
+  if [ ! -f "$dir/summary.json" ]; then
+    if [ -d "$dir" ] && [ ! -d "$dir/checkpoints" ]; then rm -rf "$dir"; fi  # killed before any checkpoint: start over
+    mkdir -p "$(dirname "$dir")"
+    start=$(date +%s)
+    # shellcheck disable=SC2086  # EXTRA: several overrides, split on purpose
+    OMP_NUM_THREADS=1 "$PYTHON" "recipes/$recipe" env="$env" experiment=multibuffer seed="$seed" "$@" $EXTRA \
+      logger.progress=false hydra.run.dir="$dir" > "$dir.log" 2>&1
+    status=$?
+    echo "$env $name: exit $status after $(( $(date +%s) - start )) s" | tee -a "$WORK/timings.txt"
+  fi
+  [ -f "$dir/summary.json" ] || return 1
+  mkdir -p "$dest"
+  cp "$dir/metrics.csv" "$dir/summary.json" "$dest/"
+  cp "$dir/.hydra/config.yaml" "$dest/config.yaml"
+  if [ "$COMMIT" = 1 ]; then flock "$WORK/.git.lock" sh -c 'git add "$1" && git commit -q -m "results: $2 (experiment=multibuffer)" -- "$1"' _ "$dest" "$env $name"; fi
+}
+export -f run_one
+
+runs | grep -E -- "$ONLY" | xargs -r -P "$JOBS" -L 1 bash -c 'run_one "$@"' _
