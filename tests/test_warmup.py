@@ -22,7 +22,7 @@ def make_td3_with_warmup(frames: int, seed: int = 7):
 
 
 def collect_actions(env, td3, batches: int, restore_from=None) -> torch.Tensor:
-    collector, td3_batches = make_td3_batches(OmegaConf.create({"td3": {"frames_per_batch": 10}}), env, td3)  # the recipes' factory
+    collector, td3_batches = make_td3_batches(OmegaConf.create({"device": "cpu", "td3": {"frames_per_batch": 10}}), env, td3)  # the recipes' factory
     if restore_from is not None:  # as the recipes do: components built, then the checkpoint loaded
         Checkpoint(exploration=td3.exploration_policy).load(restore_from)
     actions = [next(td3_batches)["action"].reshape(-1, 2) for _ in range(batches)]
