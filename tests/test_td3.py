@@ -130,12 +130,13 @@ def test_fast_td3_matches_stock_torchrl_td3():
     stock = TD3(copy.deepcopy(actor), copy.deepcopy(critic), spec, fast=False)
     torch.manual_seed(1)
     fast = TD3(actor, critic, spec)
-    assert fast.fast and type(fast.loss).__name__ == "TD3LossQ1Actor"
+    assert fast.fast and type(fast.loss).__name__ == "FusedTD3Loss"
     buffer = MultiBuffer(capacity=512, batch_size=256)
     for name in buffer.names:
         buffer.extend(_random_transitions(512, 17, 6), name)
-    for step in range(6):
+    for step in range(10):
         batch = buffer.sample()
+        batch["next", "terminated"][::9] = True  # bootstrapping cut on some transitions
         torch.manual_seed(100 + step)
         out_stock = stock.update(batch)
         torch.manual_seed(100 + step)
@@ -170,6 +171,46 @@ def test_q1_actor_loss_gradient_equals_td3loss():
         grads.append(torch.cat([p.grad.flatten() for p in actor.parameters()]))
     torch.testing.assert_close(values[0], values[1])
     torch.testing.assert_close(grads[0], grads[1], rtol=1e-5, atol=1e-7)
+
+
+def test_fused_value_loss_equals_td3loss():
+    """FusedTD3Loss.value_loss (stacked twin critics, hand-chained target actor) gives stock
+    TD3Loss.value_loss's loss, metadata and critic gradients, with targets differing from the
+    online networks, bounds other than [-1, 1] and some terminated transitions."""
+    from torchrl.data import Bounded
+    from torchrl.objectives import TD3Loss
+
+    from torchrl_esrl.objectives.td3 import FusedTD3Loss
+
+    torch.manual_seed(0)
+    spec = Bounded(-2 * torch.ones(6), torch.linspace(0.5, 3.0, 6), shape=(6,))
+    actor, critic = make_actor(17, spec), make_critic(17, 6)
+    batch = _random_transitions(256, 17, 6)
+    batch["next", "terminated"][::5] = True
+    results = []
+    for cls in (TD3Loss, FusedTD3Loss):
+        torch.manual_seed(1)
+        loss = cls(actor_network=actor, qvalue_network=critic, action_spec=spec, num_qvalue_nets=2, delay_actor=True, delay_qvalue=True)
+        loss.make_value_estimator(gamma=0.97)
+        torch.manual_seed(2)
+        with torch.no_grad():
+            for target in (loss.target_actor_network_params, loss.target_qvalue_network_params):
+                for key, value in target.items(True, True):
+                    if "action_" not in str(key):
+                        value.add_(0.05 * torch.randn_like(value))
+        torch.manual_seed(3)
+        value, metadata = loss.value_loss(batch)
+        value.backward()
+        grads = [p.grad.clone() for p in loss.qvalue_network_params.values(True, True)]
+        results.append((value.detach(), metadata, grads))
+    (stock_value, stock_meta, stock_grads), (fused_value, fused_meta, fused_grads) = results
+    assert isinstance(results[1][0], torch.Tensor) and stock_value.item() > 0
+    torch.testing.assert_close(fused_value, stock_value)
+    assert stock_meta.keys() == fused_meta.keys()
+    for key in stock_meta:
+        torch.testing.assert_close(fused_meta[key], stock_meta[key])
+    for a, b in zip(stock_grads, fused_grads):
+        torch.testing.assert_close(b, a, rtol=1e-5, atol=1e-7)
 
 
 def _random_transitions(n, obs_dim, act_dim):

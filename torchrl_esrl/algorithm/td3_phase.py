@@ -8,6 +8,7 @@ from dataclasses import dataclass, field
 import torch
 from tensordict import TensorDictBase
 
+from torchrl_esrl.algorithm.threads import torch_threads
 from torchrl_esrl.collectors.td3_collector import finished_episode_returns
 
 
@@ -37,7 +38,6 @@ class PhaseProgress:
         self.losses = {k: torch.as_tensor(v).tolist() for k, v in state["losses"].items()}
 
 
-
 def td3_phase(
     frames: int,
     batches: Iterator[TensorDictBase],
@@ -58,27 +58,28 @@ def td3_phase(
     restored from a checkpoint to finish a phase interrupted mid-way.
     """
     p = PhaseProgress() if progress is None else progress
-    is_multibuffer = hasattr(buffer, "ready")
-    while p.collected < frames:
-        batch = next(batches)
-        p.collected += batch.numel()
-        if is_multibuffer:
-            buffer.extend(batch, "noisy")
-        else:
-            buffer.extend(batch)
-        for episode_return in finished_episode_returns(batch):
-            p.episodes += 1
-            if on_episode is not None:
-                on_episode(episode_return)
-        if buffer.ready() if is_multibuffer else len(buffer) > 0:
-            p.owed += batch.numel() * updates_per_frame  # fractional updates carried between batches
-            while p.owed >= 1:
-                p.owed -= 1
-                for key, value in td3.update(buffer.sample()).items():
-                    p.losses.setdefault(key, []).append(value)
-                p.updates += 1
-        if on_batch is not None:
-            on_batch(batch.numel(), {"updates": p.updates, "episodes": p.episodes})
+    with torch_threads(td3.num_threads):  # the TD3 update's best count (TD3's docstring)
+        is_multibuffer = hasattr(buffer, "ready")
+        while p.collected < frames:
+            batch = next(batches)
+            p.collected += batch.numel()
+            if is_multibuffer:
+                buffer.extend(batch, "noisy")
+            else:
+                buffer.extend(batch)
+            for episode_return in finished_episode_returns(batch):
+                p.episodes += 1
+                if on_episode is not None:
+                    on_episode(episode_return)
+            if buffer.ready() if is_multibuffer else len(buffer) > 0:
+                p.owed += batch.numel() * updates_per_frame  # fractional updates carried between batches
+                while p.owed >= 1:
+                    p.owed -= 1
+                    for key, value in td3.update(buffer.sample()).items():
+                        p.losses.setdefault(key, []).append(value)
+                    p.updates += 1
+            if on_batch is not None:
+                on_batch(batch.numel(), {"updates": p.updates, "episodes": p.episodes})
     stats = {"updates": p.updates, "episodes": p.episodes, "frames": p.collected}
     stats.update({key: sum(v) / len(v) for key, v in p.losses.items()})
     return stats

@@ -56,6 +56,7 @@ def make_td3(cfg: DictConfig, actor, critic, action_spec) -> TD3:
         exploration_noise=c.exploration_noise,
         loss_function=c.loss_function,
         fast=c.fast,
+        num_threads=c.num_threads,
     )
 
 

@@ -47,6 +47,7 @@ class TD3Config:
     critic_hidden: List[int] = MISSING
     critic_activation: str = MISSING
     fast: bool = MISSING
+    num_threads: Optional[int] = MISSING
 
 
 @dataclass
