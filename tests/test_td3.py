@@ -217,3 +217,63 @@ def _random_transitions(n, obs_dim, act_dim):
     from benchmarks.common import transitions
 
     return transitions(n, obs_dim, act_dim, torch.Generator().manual_seed(n))
+
+
+def _collector_pair_batches(fast, frames_per_batch, batches, seed=3):
+    import copy
+
+    from torchrl_esrl.envs import make_env
+
+    env = make_env("HalfCheetah-v5", seed=seed, max_episode_steps=60)  # short episodes: resets inside batches
+    torch.manual_seed(0)
+    actor, critic = make_actor(17, env.action_spec), make_critic(17, 6)
+    td3 = TD3(copy.deepcopy(actor), critic, env.action_spec)
+    collector = make_td3_collector(env, td3, frames_per_batch=frames_per_batch, fast=fast)
+    torch.manual_seed(7)  # the exploration noise stream
+    iterator = iter(collector)
+    return [next(iterator) for _ in range(batches)]
+
+
+def test_gym_td3_collector_equals_torchrl_collector():
+    """GymTD3Collector (the fast stepping path) yields the transitions TorchRL's GymEnv +
+    Collector yield: same seed, same actor, same noise stream -> identical transition keys,
+    finished-episode returns included, across episode ends."""
+    from torchrl_esrl.data.multibuffer import TRANSITION_KEYS
+
+    for frames_per_batch, count in ((1, 130), (25, 6)):
+        reference = torch.cat(_collector_pair_batches(False, frames_per_batch, count))
+        fast = torch.cat(_collector_pair_batches(True, frames_per_batch, count))
+        assert reference["next", "done"].sum() >= 2  # episodes ended inside the window
+        for key in (*TRANSITION_KEYS, ("next", "episode_reward")):
+            assert torch.equal(reference.get(key), fast.get(key)), (frames_per_batch, key)
+        assert finished_episode_returns(reference) == finished_episode_returns(fast)
+
+
+def test_gym_td3_collector_resumes_mid_episode():
+    """TD3EnvState of the fast path restores a fresh collector mid-episode: it continues with
+    exactly the frames the uninterrupted collector produces."""
+    import copy
+
+    from torchrl_esrl.collectors.td3_collector import TD3EnvState
+    from torchrl_esrl.envs import make_env
+
+    def collector(seed):
+        env = make_env("HalfCheetah-v5", seed=seed, max_episode_steps=60)
+        torch.manual_seed(0)
+        td3 = TD3(make_actor(17, env.action_spec), make_critic(17, 6), env.action_spec)
+        return make_td3_collector(env, td3, frames_per_batch=10, fast=True)
+
+    first = collector(3)
+    batches = iter(first)
+    for _ in range(7):  # 70 frames: mid-way through the second episode
+        next(batches)
+    state = copy.deepcopy(TD3EnvState(first).state_dict())
+    torch.manual_seed(11)
+    expected = torch.cat([next(batches) for _ in range(8)])
+    resumed = collector(99)  # another seed: everything must come from the state
+    TD3EnvState(resumed).load_state_dict(state)
+    torch.manual_seed(11)
+    batches = iter(resumed)
+    got = torch.cat([next(batches) for _ in range(8)])
+    assert expected["next", "done"].any()
+    assert (got == expected).all()

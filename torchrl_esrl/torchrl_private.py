@@ -11,6 +11,24 @@ from __future__ import annotations
 
 
 # ---------------------------------------------------------------------- objectives (TD3 loss)
+def loss_priority_weight(loss, tensordict):
+    """The importance weights a TorchRL loss applies to ``tensordict`` (None without prioritised
+    sampling). Used by the TD3 loss overrides to fall back to TorchRL's own code when weights
+    are present; the public API has no getter (``LossModule._maybe_get_priority_weight``)."""
+    return loss._maybe_get_priority_weight(tensordict)
+
+
+def detached_qvalue_params(loss):
+    """A TD3 loss's critic parameters, detached and cached per step (``TD3Loss`` builds them for
+    its actor loss; there is no public accessor, and detaching again each step costs time)."""
+    return loss._cached_detach_qvalue_network_params
 
 
 # ------------------------------------------------------------------ collectors (TD3 env state)
+def gym_env_of(env):
+    """The gymnasium env inside a TorchRL ``GymEnv``, possibly under ``TransformedEnv`` layers.
+    ``GymEnv`` keeps it as ``_env`` with no public accessor; the fast TD3 stepping path and the
+    TD3 checkpoint state need the very object TorchRL seeded."""
+    while not hasattr(env, "_env"):
+        env = env.base_env
+    return env._env

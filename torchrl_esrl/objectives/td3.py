@@ -13,6 +13,9 @@ from tensordict.nn import TensorDictSequential
 from torchrl.modules import AdditiveGaussianModule
 from torchrl.objectives import SoftUpdate, TD3Loss
 
+from torchrl_esrl.modules.networks import squash
+from torchrl_esrl.torchrl_private import detached_qvalue_params, loss_priority_weight
+
 
 class TD3LossQ1Actor(TD3Loss):
     """TorchRL's ``TD3Loss`` whose ``actor_loss`` evaluates only the first critic.
@@ -25,12 +28,12 @@ class TD3LossQ1Actor(TD3Loss):
     """
 
     def actor_loss(self, tensordict) -> tuple[torch.Tensor, dict]:
-        weights = self._maybe_get_priority_weight(tensordict)
+        weights = loss_priority_weight(self, tensordict)
         td = tensordict.select(*self.actor_network.in_keys, strict=False)
         with self.actor_network_params.to_module(self.actor_network, preserve_module_state=False):
             td = self.actor_network(td)
         td = td.select(*self.qvalue_network.in_keys, strict=False)
-        with self._cached_detach_qvalue_network_params[0].to_module(self.qvalue_network, preserve_module_state=False):
+        with detached_qvalue_params(self)[0].to_module(self.qvalue_network, preserve_module_state=False):
             td = self.qvalue_network(td)
         state_action_value = td.get(self.tensor_keys.state_action_value).squeeze(-1)
         loss_actor = self._reduce_loss(-state_action_value, tensordict=tensordict, weights=weights)
@@ -97,7 +100,7 @@ class FusedTD3Loss(TD3LossQ1Actor):
 
     def value_loss(self, tensordict) -> tuple[torch.Tensor, dict]:
         layout = self._fused_layout()
-        if not layout or self._maybe_get_priority_weight(tensordict) is not None:
+        if not layout or loss_priority_weight(self, tensordict) is not None:
             return super().value_loss(tensordict)
         actor_mlp, critic_mlp = layout
         action = tensordict.get(self.tensor_keys.action)
@@ -113,15 +116,8 @@ class FusedTD3Loss(TD3LossQ1Actor):
                 )
                 if act is not None:
                     x = act(x)
-            tanh_module = self.actor_network.module[1]
-            x = x.tanh()
-            if tanh_module.clamp:
-                eps = torch.finfo(x.dtype).resolution
-                x = x.clamp(-1 + eps, 1 - eps)
-            if tanh_module.non_trivial:
-                low = target_actor.get(("module", "1", "action_low"))
-                high = target_actor.get(("module", "1", "action_high"))
-                x = low + (high - low) * (x + 1) / 2
+            bounds = target_actor.get(("module", "1", "action_low")), target_actor.get(("module", "1", "action_high"))
+            x = squash(self.actor_network.module[1], x, *bounds)
             next_action = (x + noise).clamp(self.min_action, self.max_action)
             next_q = self._twin_critics(self.target_qvalue_network_params, critic_mlp, tensordict.get(("next", "observation")), next_action)
             next_value = next_q.min(0)[0].unsqueeze(-1)

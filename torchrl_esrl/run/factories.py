@@ -61,8 +61,9 @@ def make_td3(cfg: DictConfig, actor, critic, action_spec) -> TD3:
 
 
 def make_td3_batches(cfg: DictConfig, env, td3: TD3):
-    """The TD3 collector and an iterator over it that lives across iterations."""
-    collector = make_td3_collector(env, td3, cfg.td3.frames_per_batch)
+    """The TD3 collector and an iterator over it that lives across iterations (``td3.fast``:
+    :class:`~torchrl_esrl.collectors.td3_collector.GymTD3Collector`, else TorchRL's ``Collector``)."""
+    collector = make_td3_collector(env, td3, cfg.td3.frames_per_batch, fast=cfg.td3.fast)
     return collector, iter(collector)
 
 
