@@ -8,7 +8,7 @@ from dataclasses import dataclass, field
 import torch
 from tensordict import TensorDictBase
 
-from torchrl_esrl.algorithm.threads import torch_threads
+from torchrl_esrl.threads import torch_threads
 from torchrl_esrl.collectors.td3_collector import finished_episode_returns
 
 
