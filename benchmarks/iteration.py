@@ -13,7 +13,12 @@ paper's values) and scaled by the paper's counts (Algorithm 1, Section 5.3):
   evaluations     the two 5-episode evaluations of the overwrite rule, per iteration
 
 Per iteration: 100k frames x (env step + update) + 50 generations + 2 evaluations; x 20.
-Usage: ``python -m benchmarks.iteration [--quick] [--env halfcheetah] [--out PATH]``.
+
+``--compare`` times, in the same process and before the tuned run, the reference configuration:
+``td3.fast=false`` (stock ``TD3Loss`` + ``SoftUpdate`` + default Adam, TorchRL ``Collector``),
+``td3.num_threads=null`` (the process's threads), the ES loop without overlap; each part's ratio
+is reported.
+Usage: ``python -m benchmarks.iteration [--quick] [--compare] [--env halfcheetah] [--out PATH]``.
 """
 from __future__ import annotations
 
@@ -37,6 +42,7 @@ from torchrl_esrl.run.factories import (  # noqa: E402
 )
 from torchrl_esrl.modules.networks import flat_parameters  # noqa: E402
 from torchrl_esrl.algorithm.td3_phase import td3_phase  # noqa: E402
+from torchrl_esrl.threads import torch_threads  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -50,9 +56,11 @@ def paper_config(env: str = "halfcheetah", capacity: int | None = None):
     return cfg
 
 
-def run(env: str = "halfcheetah", frames: int = 2000, generations: int = 2, capacity: int | None = None) -> dict:
+def run(env: str = "halfcheetah", frames: int = 2000, generations: int = 2, capacity: int | None = None, reference: bool = False) -> dict:
     quiet_logs()
     cfg = paper_config(env, capacity)
+    if reference:
+        cfg.td3.fast, cfg.td3.num_threads = False, None
     seed_everything(0)
     train_env = make_train_env(cfg)
     actor, critic = make_actor_critic(cfg, train_env)
@@ -60,6 +68,8 @@ def run(env: str = "halfcheetah", frames: int = 2000, generations: int = 2, capa
     collector, batches = make_td3_batches(cfg, train_env, td3)
     buffer = make_multibuffer(cfg)
     es, es_collector, threshold = make_es(cfg, actor), make_es_collector(cfg, actor), make_threshold(cfg)
+    if reference and hasattr(es_collector.backend, "overlap"):
+        es_collector.backend.overlap = False
     obs_dim, act_dim = train_env.observation_spec["observation"].shape[-1], train_env.action_spec.shape[-1]
     parts = {}
 
@@ -95,11 +105,12 @@ def run(env: str = "halfcheetah", frames: int = 2000, generations: int = 2, capa
         if missing > 0:
             fill(buffer, missing, obs_dim, act_dim, name=name)
     assert buffer.ready()
-    for _ in range(10):
-        td3.update(buffer.sample())
-    start = time.perf_counter()
-    for _ in range(frames):
-        td3.update(buffer.sample())
+    with torch_threads(td3.num_threads):  # as td3_phase runs them
+        for _ in range(10):
+            td3.update(buffer.sample())
+        start = time.perf_counter()
+        for _ in range(frames):
+            td3.update(buffer.sample())
     parts["td3_updates"] = {"s_per": (time.perf_counter() - start) / frames, "per": "update", "measured": frames}
 
     start = time.perf_counter()
@@ -129,12 +140,19 @@ def main(argv=None) -> dict:
     parser.add_argument("--env", default="halfcheetah")
     parser.add_argument("--frames", type=int, default=None)
     parser.add_argument("--generations", type=int, default=None)
+    parser.add_argument("--compare", action="store_true", help="also time the reference configuration first, same process")
     parser.add_argument("--out", default="benchmarks/results/iteration.json")
     args = parser.parse_args(argv)
-    report = run(args.env, args.frames or (500 if args.quick else 2000), args.generations or (1 if args.quick else 2))
+    frames, generations = args.frames or (500 if args.quick else 2000), args.generations or (1 if args.quick else 2)
+    reference = run(args.env, frames, generations, reference=True) if args.compare else None
+    report = run(args.env, frames, generations)
     for name, p in report["parts"].items():
-        print(f"{name:18s} {p['s_per'] * 1e3:10.2f} ms/{p['per']:10s} x{p['count_per_iteration']:>7g} = {p['s_per_iteration']:8.1f} s/iteration ({p['share']:5.1%})")
+        ratio = f"  {reference['parts'][name]['s_per'] / p['s_per']:5.2f}x reference" if reference else ""
+        print(f"{name:18s} {p['s_per'] * 1e3:10.2f} ms/{p['per']:10s} x{p['count_per_iteration']:>7g} = {p['s_per_iteration']:8.1f} s/iteration ({p['share']:5.1%}){ratio}")
     print(f"iteration {report['iteration_s']:.0f} s; {report['iterations']} iterations {report['run_h']:.2f} h (goal <= 4 h: {'met' if report['met'] else 'not met'})")
+    if reference:
+        print(f"reference configuration: iteration {reference['iteration_s']:.0f} s, {reference['run_h']:.2f} h; tuned {reference['iteration_s'] / report['iteration_s']:.2f}x faster")
+        report["reference"] = reference
     save_report(report, args.out)
     return report
 

@@ -62,7 +62,8 @@ _ACTIVATIONS = {nn.Tanh: torch.tanh, nn.ReLU: torch.relu}
 
 
 class FusedTD3Loss(TD3LossQ1Actor):
-    """:class:`TD3LossQ1Actor` whose ``value_loss`` runs the twin critics as one stacked network.
+    """:class:`TD3LossQ1Actor` whose ``value_loss`` runs the twin critics as one stacked network
+    and whose losses use the parameters directly rather than through module swaps.
 
     ``TD3Loss.value_loss`` evaluates the two critics (and their targets) with ``vmap`` over a
     TensorDict-expanded batch and the target actor through a parameter swap into the module;
@@ -73,8 +74,9 @@ class FusedTD3Loss(TD3LossQ1Actor):
     (same RNG order), clamp to the action bounds, ``min`` of the target critics, TD(0) target
     ``r + gamma * (1 - terminated) * Q'``, squared error summed over the critics and averaged
     over the batch (tests/test_td3.py compares losses, gradients and targets after several
-    updates with stock ``TD3Loss``). Networks of another shape, other value estimators or
-    losses, or prioritised weights fall back to ``TD3Loss.value_loss``.
+    updates with stock ``TD3Loss``). ``actor_loss`` is :class:`TD3LossQ1Actor`'s, written the
+    same way. Networks of another shape, other value estimators, losses or reductions, or
+    prioritised weights fall back to the parent's code.
     """
 
     def _fused_layout(self):
@@ -84,6 +86,7 @@ class FusedTD3Loss(TD3LossQ1Actor):
             actor, critic = self.actor_network, self.qvalue_network
             if (
                 self.loss_function == "l2"
+                and self.reduction == "mean"
                 and type(self.value_estimator).__name__ == "TD0Estimator"
                 and isinstance(actor, TensorDictSequential)
                 and len(actor.module) == 2
@@ -106,18 +109,7 @@ class FusedTD3Loss(TD3LossQ1Actor):
         action = tensordict.get(self.tensor_keys.action)
         noise = (torch.randn_like(action) * self.policy_noise).clamp(-self.noise_clip, self.noise_clip)  # drawn first, as TD3Loss
         with torch.no_grad():
-            target_actor = self.target_actor_network_params
-            x = tensordict.get(("next", "observation"))
-            for name, act in actor_mlp:
-                x = torch.addmm(
-                    target_actor.get(("module", "0", "module", name, "bias")),
-                    x,
-                    target_actor.get(("module", "0", "module", name, "weight")).t(),
-                )
-                if act is not None:
-                    x = act(x)
-            bounds = target_actor.get(("module", "1", "action_low")), target_actor.get(("module", "1", "action_high"))
-            x = squash(self.actor_network.module[1], x, *bounds)
+            x = self._actor(self.target_actor_network_params, actor_mlp, tensordict.get(("next", "observation")))
             next_action = (x + noise).clamp(self.min_action, self.max_action)
             next_q = self._twin_critics(self.target_qvalue_network_params, critic_mlp, tensordict.get(("next", "observation")), next_action)
             next_value = next_q.min(0)[0].unsqueeze(-1)
@@ -133,6 +125,34 @@ class FusedTD3Loss(TD3LossQ1Actor):
             "target_value": target_value,
         }
         return loss_qval, metadata
+
+    def actor_loss(self, tensordict) -> tuple[torch.Tensor, dict]:
+        """``-Q_1(s, pi(s)).mean()`` as :class:`TD3LossQ1Actor`, with the actor and the first
+        critic's (detached) parameters used directly instead of swapped into the modules."""
+        layout = self._fused_layout()
+        if not layout or loss_priority_weight(self, tensordict) is not None:
+            return super().actor_loss(tensordict)
+        actor_mlp, critic_mlp = layout
+        observation = tensordict.get("observation")
+        action = self._actor(self.actor_network_params, actor_mlp, observation)
+        critic = detached_qvalue_params(self)
+        x = torch.cat([observation, action], -1)
+        for name, act in critic_mlp:
+            x = torch.addmm(critic.get(("module", name, "bias"))[0], x, critic.get(("module", name, "weight"))[0].t())
+            if act is not None:
+                x = act(x)
+        state_action_value = x.squeeze(-1)
+        return -state_action_value.mean(), {"state_action_value_actor": state_action_value.detach()}
+
+    def _actor(self, params, actor_mlp, observation) -> torch.Tensor:
+        """The actor (MLP + ``TanhModule``) with ``params`` (online or target), as its modules compute it."""
+        x = observation
+        for name, act in actor_mlp:
+            x = torch.addmm(params.get(("module", "0", "module", name, "bias")), x, params.get(("module", "0", "module", name, "weight")).t())
+            if act is not None:
+                x = act(x)
+        bounds = params.get(("module", "1", "action_low")), params.get(("module", "1", "action_high"))
+        return squash(self.actor_network.module[1], x, *bounds)
 
     @staticmethod
     def _twin_critics(params, critic_mlp, observation, action) -> torch.Tensor:
