@@ -18,6 +18,34 @@ def loss_priority_weight(loss, tensordict):
     return loss._maybe_get_priority_weight(tensordict)
 
 
+def reduce_loss(loss, value, tensordict, weights):
+    """A TorchRL loss's reduction (``reduction`` and priority weights) of a per-sample loss;
+    ``LossModule._reduce_loss`` has no public counterpart and the Q1-only actor loss must reduce
+    exactly as ``TD3Loss.actor_loss`` does."""
+    return loss._reduce_loss(value, tensordict=tensordict, weights=weights)
+
+
+def soft_update_tensors(updater) -> tuple[list, list]:
+    """(source, target) tensor lists of a ``SoftUpdate``, in the order ``SoftUpdate.step`` visits
+    them. ``SoftUpdate`` keeps them in ``_sources``/``_targets`` (filled lazily by looking the
+    names up on the loss) with no public accessor; one foreach call over them replaces its loop."""
+    for name in updater._target_names:
+        getattr(updater.loss_module, name)
+    sources, targets = [], []
+    for key, param in updater._sources.items():
+        target = updater._targets.get(f"target_{key}")
+        if target.requires_grad:
+            raise RuntimeError("the target parameter is part of a graph.")
+        if hasattr(param, "keys"):  # the loss's stacked parameter TensorDicts
+            for leaf in param.keys(True, True):
+                sources.append(param.get(leaf).data)
+                targets.append(target.get(leaf).data)
+        else:
+            sources.append(param.data)
+            targets.append(target.data)
+    return sources, targets
+
+
 def detached_qvalue_params(loss):
     """A TD3 loss's critic parameters, detached and cached per step (``TD3Loss`` builds them for
     its actor loss; there is no public accessor, and detaching again each step costs time)."""
@@ -32,3 +60,19 @@ def gym_env_of(env):
     while not hasattr(env, "_env"):
         env = env.base_env
     return env._env
+
+
+def collector_carrier(collector):
+    """The TensorDict a TorchRL ``Collector`` carries between batches (the next step's input).
+    ``Collector.state_dict`` leaves it out; a checkpoint taken mid-episode needs it."""
+    return collector._carrier
+
+
+def restore_collector(collector, frames: int, iterations: int, carrier, traj_pool_state=None) -> None:
+    """Put a TorchRL ``Collector`` back where a checkpoint left it: its counters, carried
+    TensorDict and trajectory-id pool (``Collector.load_state_dict`` restores neither the
+    carrier nor, for a single env, the counters)."""
+    collector._frames, collector._iter = int(frames), int(iterations)
+    if traj_pool_state is not None:
+        collector._traj_pool.load_state_dict(traj_pool_state)
+    collector._carrier = carrier

@@ -13,7 +13,7 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.collectors import Collector
 
 from torchrl_esrl.modules.networks import squash
-from torchrl_esrl.torchrl_private import gym_env_of
+from torchrl_esrl.torchrl_private import collector_carrier, gym_env_of, restore_collector
 
 
 def make_td3_collector(env, td3, frames_per_batch: int = 1, fast: bool = False):
@@ -223,7 +223,7 @@ class TD3EnvState:
         collector_state = {k: v for k, v in self.collector.state_dict().items() if k != "policy_state_dict"}  # policy: saved with TD3
         return {
             "collector": collector_state,
-            "carrier": self.collector._carrier.to_dict(),
+            "carrier": collector_carrier(self.collector).to_dict(),
             "gym": gym_env_state(self._gym_env()),
         }
 
@@ -233,8 +233,7 @@ class TD3EnvState:
             return
         collector = self.collector
         collector.env.transform.load_state_dict(state["collector"]["env_state_dict"])
-        collector._frames, collector._iter = int(state["collector"]["frames"]), int(state["collector"]["iter"])
-        if "traj_pool" in state["collector"]:
-            collector._traj_pool.load_state_dict(state["collector"]["traj_pool"])
-        collector._carrier = TensorDict(state["carrier"], batch_size=collector._carrier.batch_size)
+        collector_state = state["collector"]
+        carrier = TensorDict(state["carrier"], batch_size=collector_carrier(collector).batch_size)
+        restore_collector(collector, collector_state["frames"], collector_state["iter"], carrier, collector_state.get("traj_pool"))  # absent: no pool saved
         load_gym_env_state(self._gym_env(), state["gym"])

@@ -14,7 +14,7 @@ from torchrl.modules import AdditiveGaussianModule
 from torchrl.objectives import SoftUpdate, TD3Loss
 
 from torchrl_esrl.modules.networks import squash
-from torchrl_esrl.torchrl_private import detached_qvalue_params, loss_priority_weight
+from torchrl_esrl.torchrl_private import detached_qvalue_params, loss_priority_weight, reduce_loss, soft_update_tensors
 
 
 class TD3LossQ1Actor(TD3Loss):
@@ -36,7 +36,7 @@ class TD3LossQ1Actor(TD3Loss):
         with detached_qvalue_params(self)[0].to_module(self.qvalue_network, preserve_module_state=False):
             td = self.qvalue_network(td)
         state_action_value = td.get(self.tensor_keys.state_action_value).squeeze(-1)
-        loss_actor = self._reduce_loss(-state_action_value, tensordict=tensordict, weights=weights)
+        loss_actor = reduce_loss(self, -state_action_value, tensordict, weights)
         return loss_actor, {"state_action_value_actor": state_action_value.detach()}
 
 
@@ -182,21 +182,7 @@ class ForeachSoftUpdate(SoftUpdate):
             raise RuntimeError("ForeachSoftUpdate must be initialized (init_()) before step()")
         pairs = self.__dict__.get("_pairs")
         if pairs is None:
-            for name in self._target_names:
-                getattr(self.loss_module, name)
-            sources, targets = [], []
-            for key, param in self._sources.items():
-                target = self._targets.get(f"target_{key}")
-                if target.requires_grad:
-                    raise RuntimeError("the target parameter is part of a graph.")
-                if isinstance(param, TensorDictBase):  # the loss's stacked parameter TensorDicts
-                    for leaf in param.keys(True, True):
-                        sources.append(param.get(leaf).data)
-                        targets.append(target.get(leaf).data)
-                else:
-                    sources.append(param.data)
-                    targets.append(target.data)
-            pairs = self.__dict__["_pairs"] = (sources, targets)
+            pairs = self.__dict__["_pairs"] = soft_update_tensors(self)
         torch._foreach_lerp_(pairs[1], pairs[0], 1 - self.eps)
 
 
