@@ -76,13 +76,22 @@ class Setup:
             self.es_collector.backend.overlap = False
         self.obs_dim, self.act_dim = train_env.observation_spec["observation"].shape[-1], train_env.action_spec.shape[-1]
         self.seconds: dict[str, list[float]] = {}  # part -> seconds per unit, one entry per round
+        self.cpu_seconds: dict[str, list[float]] = {}  # the same in process CPU time (all threads)
+        self._cpu_start = 0.0
         self.env_steps_per_generation = 0
 
     def record(self, part: str, seconds: float, units: int) -> None:
+        """Wall seconds of ``part`` per unit, and the process CPU time since the part's
+        ``start_cpu`` (less inflated by other processes' load than wall time)."""
         self.seconds.setdefault(part, []).append(seconds / units)
+        self.cpu_seconds.setdefault(part, []).append((time.process_time() - self._cpu_start) / units)
+
+    def start_cpu(self) -> None:
+        self._cpu_start = time.process_time()
 
     def env_steps(self, frames: int) -> None:
         """TD3 acting + noisy writes, no learning (good/bad still empty: the buffer is not ready)."""
+        self.start_cpu()
         start = time.perf_counter()
         stats = td3_phase(frames, self.batches, self.td3, self.buffer)
         self.record("td3_env_steps", time.perf_counter() - start, stats["frames"])
@@ -91,15 +100,18 @@ class Setup:
     def generation(self) -> None:
         """One ES generation: evaluation, routing writes, tell."""
         population = self.es.ask()
+        self.start_cpu()
         start = time.perf_counter()
         generation = self.es_collector.evaluate(population)
         self.record("es_evaluation", time.perf_counter() - start, 1)
         self.env_steps_per_generation = generation.frames
+        self.start_cpu()
         start = time.perf_counter()
         good = self.threshold.route(generation.returns)
         self.buffer.extend(generation.transitions[generation.member_mask(good)], "good")
         self.buffer.extend(generation.transitions[generation.member_mask(~good)], "bad")
         self.record("es_buffer_writes", time.perf_counter() - start, 1)
+        self.start_cpu()
         start = time.perf_counter()
         self.es.tell(generation.returns)
         self.record("es_tell", time.perf_counter() - start, 1)
@@ -117,12 +129,14 @@ class Setup:
 
     def updates(self, count: int) -> None:
         with torch_threads(self.td3.num_threads):  # as td3_phase runs them
+            self.start_cpu()
             start = time.perf_counter()
             for _ in range(count):
                 self.td3.update(self.buffer.sample())
         self.record("td3_updates", time.perf_counter() - start, count)
 
     def evaluations(self) -> None:
+        self.start_cpu()
         start = time.perf_counter()
         self.es_collector.evaluate_policy(flat_parameters(self.actor), self.cfg.eval.episodes)
         self.es_collector.evaluate_policy(self.es.mean.detach(), self.cfg.eval.episodes)
@@ -136,15 +150,18 @@ class Setup:
                   "generation": cfg.es.generations_per_iteration, "iteration": 1}
         parts, iteration_s = {}, 0.0
         for name, rounds in self.seconds.items():
-            part = {"s_per": statistics.median(rounds), "per": per[name], "rounds_s_per": rounds, "count_per_iteration": counts[per[name]]}
+            part = {"s_per": statistics.median(rounds), "per": per[name], "rounds_s_per": rounds, "count_per_iteration": counts[per[name]],
+                    "cpu_s_per": statistics.median(self.cpu_seconds[name])}
             part["s_per_iteration"] = part["s_per"] * part["count_per_iteration"]
+            part["cpu_s_per_iteration"] = part["cpu_s_per"] * part["count_per_iteration"]
             iteration_s += part["s_per_iteration"]
             parts[name] = part
         parts["es_evaluation"]["env_steps_per_generation"] = self.env_steps_per_generation
         for part in parts.values():
             part["share"] = part["s_per_iteration"] / iteration_s
         run_s = iteration_s * cfg.iterations
-        return {"env": cfg.env.id, "iterations": cfg.iterations, "parts": parts, "iteration_s": iteration_s, "run_s": run_s,
+        cpu_iteration_s = sum(p["cpu_s_per_iteration"] for p in parts.values())
+        return {"cpu_iteration_s": cpu_iteration_s, "cpu_run_h": cpu_iteration_s * cfg.iterations / 3600,"env": cfg.env.id, "iterations": cfg.iterations, "parts": parts, "iteration_s": iteration_s, "run_s": run_s,
                 "run_h": run_s / 3600, "goal": "20 iterations <= 4 h", "met": run_s <= 4 * 3600,
                 "config": {"td3.fast": cfg.td3.fast, "td3.num_threads": cfg.td3.num_threads,
                            "es_overlap": getattr(self.es_collector.backend, "overlap", None)}}
@@ -193,8 +210,9 @@ def main(argv=None) -> dict:
     reference = report.get("reference")
     for name, p in report["parts"].items():
         ratio = f"  {reference['parts'][name]['s_per'] / p['s_per']:5.2f}x reference" if reference else ""
-        print(f"{name:18s} {p['s_per'] * 1e3:10.2f} ms/{p['per']:10s} x{p['count_per_iteration']:>7g} = {p['s_per_iteration']:8.1f} s/iteration ({p['share']:5.1%}){ratio}")
+        print(f"{name:18s} {p['s_per'] * 1e3:10.2f} ms/{p['per']:10s} (cpu {p['cpu_s_per'] * 1e3:9.2f}) x{p['count_per_iteration']:>7g} = {p['s_per_iteration']:8.1f} s/iteration ({p['share']:5.1%}){ratio}")
     print(f"iteration {report['iteration_s']:.0f} s; {report['iterations']} iterations {report['run_h']:.2f} h (goal <= 4 h: {'met' if report['met'] else 'not met'})")
+    print(f"process CPU time: iteration {report['cpu_iteration_s']:.0f} s, {report['iterations']} iterations {report['cpu_run_h']:.2f} h (core-hours; ~wall for the 1-thread TD3 parts on a quiet machine)")
     if reference:
         print(f"reference configuration: iteration {reference['iteration_s']:.0f} s, {reference['run_h']:.2f} h; tuned {reference['iteration_s'] / report['iteration_s']:.2f}x faster")
     save_report(report, args.out)
