@@ -50,8 +50,9 @@ def td3_phase(
 ) -> dict[str, float]:
     """Act for ``frames`` frames, writing to ``buffer``'s noisy part and learning once it is ready.
 
-    ``batches`` is an iterator over a TorchRL collector (kept alive across phases so episodes
-    continue where they stopped). ``buffer`` is a :class:`~torchrl_esrl.data.multibuffer.MultiBuffer`
+    ``batches`` is an iterator over a TD3 collector (:func:`~torchrl_esrl.collectors.td3_collector.make_td3_collector`,
+    kept alive across phases so episodes continue where they stopped). The phase runs on
+    ``td3.num_threads`` torch threads. ``buffer`` is a :class:`~torchrl_esrl.data.multibuffer.MultiBuffer`
     (written under ``"noisy"``) or any TorchRL replay buffer. ``on_episode`` sees each finished
     training episode's return (Algorithm 1 lets them raise the threshold). ``progress`` (a
     :class:`PhaseProgress`) holds the phase's counters: pass the one
