@@ -33,7 +33,7 @@ def population(env_id: str, members: int, sigma: float, seed: int = 0):
 @pytest.mark.parametrize("overlap", [True, False])
 @pytest.mark.parametrize("env_id", ENV_IDS)
 def test_same_episodes_as_gym_backend(env_id, overlap):
-    steps, members = 120, 6
+    steps, members = 120, 16 if overlap else 6  # the overlapped loop starts at 16 members
     policy, params = population(env_id, members, sigma=0.3)
     seeds = [11 * p + 3 for p in range(members)]
     reference = GymBackend(env_id, policy, max_episode_steps=steps).rollout(params, seeds)
@@ -130,7 +130,7 @@ def test_early_terminated_members_contribute_only_their_steps(env_id):
 def test_overlapped_halves_give_the_sequential_episodes_bit_for_bit(env_id):
     """The overlapped loop (physics of one half during the other half's forward) produces exactly
     the sequential loop's generation, odd population and early terminations included."""
-    steps, members = 150, 9
+    steps, members = 150, 17  # odd, and above the overlap's minimum population
     policy, params = population(env_id, members, sigma=0.3, seed=2)
     seeds = list(range(40, 40 + members))
     sequential = MujocoBatchBackend(env_id, policy, max_episode_steps=steps, overlap=False).rollout(params, seeds)
@@ -141,6 +141,7 @@ def test_overlapped_halves_give_the_sequential_episodes_bit_for_bit(env_id):
         assert torch.equal(overlapped.transitions.get(key), sequential.transitions.get(key)), key
     if env_id != "HalfCheetah-v5":
         assert (sequential.lengths < steps).any()
+    assert MujocoBatchBackend(env_id, policy, overlap=True)._overlaps(members)
 
 
 def test_registered_and_chosen_by_default():

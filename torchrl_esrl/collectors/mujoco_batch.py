@@ -154,7 +154,9 @@ class MujocoBatchBackend:
             return False
 
     def _overlaps(self, population: int) -> bool:
-        return self.overlap and population >= 2 and not self.compact_finished and not self.rules.contact_forces
+        # Small populations (the 5-episode evaluations) gain nothing: two thread hand-offs per
+        # step cost more than a few members' forward.
+        return self.overlap and population >= 16 and not self.compact_finished and not self.rules.contact_forces
 
     def _get_batch(self, population: int) -> mujoco.batch.Batch:
         if self._batch is None or self._batch.nsim != population:
