@@ -11,16 +11,17 @@ method. Methods, interleaved in one run:
   plain_fused   the same with fused Adam (reference: what the baseline gets from the same trick)
   torchrl_stock TD3(fast=False): TorchRL TD3Loss + SoftUpdate + default Adam
   torchrl_fast  TD3() default: FusedTD3Loss (stacked twin critics, Q1-only actor loss) +
-                ForeachSoftUpdate + fused Adam, 1 thread (the TD3 phase's ``td3.num_threads``)
-  torchrl_fast_2threads  the same on 2 threads
+                ForeachSoftUpdate + fused Adam, 1 thread
+  torchrl_fast_2threads  the same on 2 threads (the TD3 phase's ``td3.num_threads: 2``, as the
+                recipes run it under libgomp's default wait policy: ``--omp-default``)
 
-Each method sets its thread count before every call. The process runs under the recipes'
-``OMP_WAIT_POLICY=PASSIVE``; with 1 thread the policy does not matter (no worker threads), so
-``plain`` is also what a default process gets on 1 thread. A default process on 2 threads is
-``--omp-default`` (run it as a second process and compare its ``plain_2threads`` against this
-run's ``plain``: the wait policy is read once, when torch loads).
+Each method sets its thread count before every call. By default the process runs under
+``OMP_WAIT_POLICY=PASSIVE`` (benchmarks/common.py); ``--omp-default`` runs it under libgomp's own
+(spinning) policy, as the recipes do: the wait policy is read once, when torch loads, so the two
+are separate processes.
 
-Goal: torchrl_fast >= 1.2x the best plain. Usage: ``python -m benchmarks.td3_update [--quick] [--out PATH]``.
+Goal: the better torchrl_fast thread count >= 1.2x the better plain one (``--omp-default``).
+Usage: ``python -m benchmarks.td3_update [--quick] [--omp-default] [--out PATH]``.
 """
 from __future__ import annotations
 
@@ -128,10 +129,11 @@ def run(capacity: int = 1_000_000, repeats: int = 7, calls: int = 50, env_id: st
         t["ratio"] = base / t["s_per_call"]  # speed relative to plain: > 1 is faster
         t["ratio_best"] = timings["plain"]["best_s_per_call"] / t["best_s_per_call"]  # quietest rounds
     best_plain = min(timings["plain"]["s_per_call"], timings["plain_2threads"]["s_per_call"])
-    return {"env": env_id, "capacity": capacity, "batch_size": 256, "goal": "torchrl_fast >= 1.2x the best plain (update rate)",
-            "ratio_vs_best_plain": best_plain / timings["torchrl_fast"]["s_per_call"],
+    best_fast = min(timings["torchrl_fast"]["s_per_call"], timings["torchrl_fast_2threads"]["s_per_call"])
+    return {"env": env_id, "capacity": capacity, "batch_size": 256, "goal": "best torchrl_fast >= 1.2x the best plain (update rate)",
+            "ratio_vs_best_plain": best_plain / best_fast,
             "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY", "libgomp default"),
-            "met": best_plain / timings["torchrl_fast"]["s_per_call"] >= 1.2, "methods": timings}
+            "met": best_plain / best_fast >= 1.2, "methods": timings}
 
 
 def main(argv=None) -> dict:
@@ -145,6 +147,7 @@ def main(argv=None) -> dict:
     report = run(100_000 if args.quick else 1_000_000, repeats=args.repeats or (3 if args.quick else 9), calls=args.calls or (20 if args.quick else 50))
     for name, t in report["methods"].items():
         print(f"{name:22s} {t['updates_per_s']:8.1f} updates/s  {t['ratio']:5.2f}x plain (best rounds {t['ratio_best']:5.2f}x)")
+    print(f"best torchrl_fast / best plain: {report['ratio_vs_best_plain']:.2f}x (goal >= 1.2x: {'met' if report['met'] else 'not met'})")
     save_report(report, args.out)
     return report
 

@@ -224,8 +224,7 @@ class MujocoBatchBackend:
         def physics(k: int):
             return self._physics_thread.submit(batch.step, ids=live[k], nstep=frame_skip)
 
-        with torch_threads(1):  # the other core steps physics
-            self._overlapped_loop(act, physics, live, batch, buffers)
+        self._overlapped_loop(act, physics, live, batch, buffers)
 
     def _overlapped_loop(self, act, physics, live, batch, buffers) -> None:
         act(0, 0)
@@ -291,83 +290,86 @@ class MujocoBatchBackend:
         self._reset(batch, seeds, first_obs, x_before)
         obs_traj[:, 0] = first_obs
 
-        if self._overlaps(population):
-            self._overlapped_steps(batch, params, obs_traj, actions, rewards, terminated, truncated, lengths, x_before)
-        else:
-            live = np.arange(population)
-            # Members whose parameters the forward runs on: all of them, or with compact_finished a
-            # group re-gathered (one copy of its rows) only when the live set has shrunk to 3/4 of it,
-            # so finished members cost a little wasted forward instead of one P x D copy each.
-            group, group_params = live, params
-            layers = self.policy.split(group_params)
-            position_in_group = live  # row of each live member in group_params
-            skipped = rules.skipped_qpos
-            for t in range(horizon):
-                if self.compact_finished and len(live) * 4 <= len(group) * 3:
-                    group, group_params = live, params[torch.as_tensor(live)]
-                    layers = self.policy.split(group_params)
-                    position_in_group = np.arange(len(live))
-                all_live = len(live) == population
-                # Basic slices while every member is live: views instead of fancy-index copies.
-                rows = slice(None) if all_live else live
-                group_rows = slice(None) if len(group) == population else group
-                action = self.policy(group_params, torch.from_numpy(obs_traj[group_rows, t]), layers).numpy()
-                if len(group) != len(live):
-                    action = action[position_in_group]
-                actions[rows, t] = action
-                ctrl[rows] = action
+        # One torch thread: the forward is memory-bound, and a second OpenMP thread left
+        # spinning after it (libgomp's default wait policy) would take MuJoCo's second core.
+        with torch_threads(1):
+            if self._overlaps(population):
+                self._overlapped_steps(batch, params, obs_traj, actions, rewards, terminated, truncated, lengths, x_before)
+            else:
+                live = np.arange(population)
+                # Members whose parameters the forward runs on: all of them, or with compact_finished a
+                # group re-gathered (one copy of its rows) only when the live set has shrunk to 3/4 of it,
+                # so finished members cost a little wasted forward instead of one P x D copy each.
+                group, group_params = live, params
+                layers = self.policy.split(group_params)
+                position_in_group = live  # row of each live member in group_params
+                skipped = rules.skipped_qpos
+                for t in range(horizon):
+                    if self.compact_finished and len(live) * 4 <= len(group) * 3:
+                        group, group_params = live, params[torch.as_tensor(live)]
+                        layers = self.policy.split(group_params)
+                        position_in_group = np.arange(len(live))
+                    all_live = len(live) == population
+                    # Basic slices while every member is live: views instead of fancy-index copies.
+                    rows = slice(None) if all_live else live
+                    group_rows = slice(None) if len(group) == population else group
+                    action = self.policy(group_params, torch.from_numpy(obs_traj[group_rows, t]), layers).numpy()
+                    if len(group) != len(live):
+                        action = action[position_in_group]
+                    actions[rows, t] = action
+                    ctrl[rows] = action
 
-                batch.step(ids=None if all_live else live, nstep=self.frame_skip)
+                    batch.step(ids=None if all_live else live, nstep=self.frame_skip)
 
-                qpos, qvel = state_qpos[rows], state_qvel[rows]
-                if rules.x_from_body is not None:
-                    x_after = body_xpos[rows, rules.x_from_body, 0]
-                else:
-                    x_after = qpos[:, 0]
-                forward_reward = c["_forward_reward_weight"] * ((x_after - x_before[rows]) / self.dt)
-                x_before[rows] = x_after
-                # float32 like gymnasium's np.sum(np.square(action)) on the float32 action
-                ctrl_cost = self.ctrl_cost_weight * np.square(action).sum(axis=1)
+                    qpos, qvel = state_qpos[rows], state_qvel[rows]
+                    if rules.x_from_body is not None:
+                        x_after = body_xpos[rows, rules.x_from_body, 0]
+                    else:
+                        x_after = qpos[:, 0]
+                    forward_reward = c["_forward_reward_weight"] * ((x_after - x_before[rows]) / self.dt)
+                    x_before[rows] = x_after
+                    # float32 like gymnasium's np.sum(np.square(action)) on the float32 action
+                    ctrl_cost = self.ctrl_cost_weight * np.square(action).sum(axis=1)
 
-                # A view while all are live; a fancy-index copy otherwise, written back below.
-                observation = obs_traj[rows, t + 1]
-                n_pos = nq - skipped
-                observation[:, :n_pos] = qpos[:, skipped:]
-                if rules.clip_qvel is None:
-                    observation[:, n_pos : n_pos + nv] = qvel
-                else:
-                    observation[:, n_pos : n_pos + nv] = np.clip(qvel, -rules.clip_qvel, rules.clip_qvel)
+                    # A view while all are live; a fancy-index copy otherwise, written back below.
+                    observation = obs_traj[rows, t + 1]
+                    n_pos = nq - skipped
+                    observation[:, :n_pos] = qpos[:, skipped:]
+                    if rules.clip_qvel is None:
+                        observation[:, n_pos : n_pos + nv] = qvel
+                    else:
+                        observation[:, n_pos : n_pos + nv] = np.clip(qvel, -rules.clip_qvel, rules.clip_qvel)
 
-                if rules.healthy is not None:
-                    healthy = rules.healthy(qpos, qvel, c)
-                    reward = forward_reward + healthy * c["_healthy_reward"]
-                    term = ~healthy if c["_terminate_when_unhealthy"] else np.zeros(len(live), dtype=bool)
-                else:
-                    reward = forward_reward
-                    term = None
-                if rules.contact_forces:
-                    self._contact_forces(batch, live, cfrc_ext)
-                    low, high = c["_contact_force_range"]
-                    clipped = np.clip(cfrc_ext[rows], low, high)
-                    contact_cost = c["_contact_cost_weight"] * np.square(clipped).reshape(len(live), -1).sum(axis=1)
-                    observation[:, n_pos + nv :] = clipped[:, 1:].reshape(len(live), -1)
-                    reward = reward - (ctrl_cost + contact_cost)
-                else:
-                    reward = reward - ctrl_cost
-                if not all_live:
-                    obs_traj[live, t + 1] = observation
-                rewards[rows, t] = reward
-                lengths[rows] = t + 1
-                if t + 1 >= horizon:  # time limit (gymnasium's TimeLimit: truncated even when also terminated)
-                    truncated[rows, t] = True
-                if term is not None and term.any():
-                    terminated[rows, t] = term
-                    if t + 1 >= horizon:
-                        break
-                    live = live[~term]
-                    if len(live) == 0:
-                        break
-                    position_in_group = np.searchsorted(group, live)
+                    if rules.healthy is not None:
+                        healthy = rules.healthy(qpos, qvel, c)
+                        reward = forward_reward + healthy * c["_healthy_reward"]
+                        term = ~healthy if c["_terminate_when_unhealthy"] else np.zeros(len(live), dtype=bool)
+                    else:
+                        reward = forward_reward
+                        term = None
+                    if rules.contact_forces:
+                        self._contact_forces(batch, live, cfrc_ext)
+                        low, high = c["_contact_force_range"]
+                        clipped = np.clip(cfrc_ext[rows], low, high)
+                        contact_cost = c["_contact_cost_weight"] * np.square(clipped).reshape(len(live), -1).sum(axis=1)
+                        observation[:, n_pos + nv :] = clipped[:, 1:].reshape(len(live), -1)
+                        reward = reward - (ctrl_cost + contact_cost)
+                    else:
+                        reward = reward - ctrl_cost
+                    if not all_live:
+                        obs_traj[live, t + 1] = observation
+                    rewards[rows, t] = reward
+                    lengths[rows] = t + 1
+                    if t + 1 >= horizon:  # time limit (gymnasium's TimeLimit: truncated even when also terminated)
+                        truncated[rows, t] = True
+                    if term is not None and term.any():
+                        terminated[rows, t] = term
+                        if t + 1 >= horizon:
+                            break
+                        live = live[~term]
+                        if len(live) == 0:
+                            break
+                        position_in_group = np.searchsorted(group, live)
 
         returns = rewards.sum(axis=1)
         transitions = transitions_from_arrays(
