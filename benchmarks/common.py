@@ -8,7 +8,8 @@ from __future__ import annotations
 
 import os
 
-os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # before torch loads (see docs/performance.md)
+if not os.environ.get("BENCHMARKS_OMP_DEFAULT"):  # set by a benchmark's --omp-default: libgomp's own policy
+    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # before torch loads (see docs/performance.md)
 import platform
 import statistics
 import time

@@ -3,7 +3,9 @@
 120 offspring of the paper's 2x256 tanh actor (sigma 0.005 perturbations of a random actor),
 one episode each (up to 1000 steps), measured in one run for:
 
-  batched    the ``mujoco_batch`` backend (mujoco.batch.Batch + one batched forward per step)
+  batched    the ``mujoco_batch`` backend (mujoco.batch.Batch + one batched forward per step;
+             one half's physics overlaps the other half's forward)
+  batched_sequential  the same, physics and forward one after the other (``overlap=False``)
   raw        the same mujoco.batch stepping with fixed controls: no policy, no rewards (the ceiling)
   serial     one gymnasium env, offspring after offspring, torch forward per step with the
              offspring's weights loaded into an actor
@@ -21,7 +23,8 @@ import argparse
 import json
 import os
 
-os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+if not os.environ.get("BENCHMARKS_OMP_DEFAULT"):  # 1: libgomp's own wait policy (as the recipes run)
+    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 import platform
 import sys
 import time
@@ -100,26 +103,38 @@ def time_serial(env_id: str, actor, params, seeds, steps: int) -> dict:
     return {"steps": total, "seconds": seconds, "steps_per_s": total / seconds}
 
 
-def best_of(repeats: int, measure) -> dict:
-    """The fastest of ``repeats`` runs (the machine may be shared); every run's steps/s is kept."""
-    runs = [measure() for _ in range(repeats)]
-    best = max(runs, key=lambda r: r["steps_per_s"])
-    return best | {"runs_steps_per_s": [round(r["steps_per_s"]) for r in runs]}
+def interleaved_runs(repeats: int, measures: dict) -> dict:
+    """Every method once per round, ``repeats`` rounds (the machine may be shared): the median
+    run of each, with every run's steps/s kept."""
+    runs = {name: [] for name in measures}
+    for _ in range(repeats):
+        for name, measure in measures.items():
+            runs[name].append(measure())
+    out = {}
+    for name, rs in runs.items():
+        ordered = sorted(rs, key=lambda r: r["steps_per_s"])
+        out[name] = ordered[len(ordered) // 2] | {"runs_steps_per_s": [round(r["steps_per_s"]) for r in rs]}
+    return out
 
 
-def run(env_id: str, members: int, steps: int, nthread: int, sweep: bool, repeats: int = 1) -> dict:
+def run(env_id: str, members: int, steps: int, nthread: int, sweep: bool, repeats: int = 1, skip_slow: bool = False) -> dict:
     actor, params = make_population(env_id, members)
     policy = PopulationActor(actor)
     seeds = list(range(1000, 1000 + members))
     batched_backend = MujocoBatchBackend(env_id, policy, max_episode_steps=steps, nthread=nthread)
+    sequential_backend = MujocoBatchBackend(env_id, policy, max_episode_steps=steps, nthread=nthread, overlap=False)
     batched_backend.rollout(params[:2], seeds[:2])  # warm-up (imports, allocator)
+    sequential_backend.rollout(params[:2], seeds[:2])
     lockstep_backend = GymBackend(env_id, policy, max_episode_steps=steps)
-    results = {
-        "batched": best_of(repeats, lambda: time_backend(batched_backend, params, seeds)),
-        "raw": best_of(repeats, lambda: time_raw_physics(env_id, members, steps, seeds, nthread)),
-        "serial": best_of(repeats, lambda: time_serial(env_id, actor, params, seeds, steps)),
-        "lockstep": best_of(repeats, lambda: time_backend(lockstep_backend, params, seeds)),
+    measures = {
+        "batched": lambda: time_backend(batched_backend, params, seeds),
+        "batched_sequential": lambda: time_backend(sequential_backend, params, seeds),
+        "raw": lambda: time_raw_physics(env_id, members, steps, seeds, nthread),
     }
+    if not skip_slow:
+        measures["serial"] = lambda: time_serial(env_id, actor, params, seeds, steps)
+        measures["lockstep"] = lambda: time_backend(lockstep_backend, params, seeds)
+    results = interleaved_runs(repeats, measures)
     if sweep:
         variants = {}
         for torch_threads in (1, 2):
@@ -145,7 +160,8 @@ def main(argv=None) -> dict:
     parser.add_argument("--torch-threads", type=int, default=None, help="torch.set_num_threads (default: torch's)")
     parser.add_argument("--sweep", action="store_true", help="also time thread counts / persistent / compaction variants")
     parser.add_argument("--envs", nargs="+", default=ENVS)
-    parser.add_argument("--repeats", type=int, default=2, help="runs per method; the fastest is reported")
+    parser.add_argument("--repeats", type=int, default=3, help="interleaved rounds; each method's median run is reported")
+    parser.add_argument("--skip-slow", action="store_true", help="leave out the serial and lockstep gymnasium loops")
     parser.add_argument("--out", default="benchmarks/results/es_population.json")
     args = parser.parse_args(argv)
     members = args.members or (16 if args.quick else 120)
@@ -162,15 +178,16 @@ def main(argv=None) -> dict:
         "load_average_before": os.getloadavg(),
         "envs": {},
     }
-    header = f"{'env':16s} {'method':10s} {'steps':>8s} {'seconds':>8s} {'steps/s':>9s} {'vs raw':>7s} {'vs serial':>9s}"
+    header = f"{'env':16s} {'method':18s} {'steps':>8s} {'seconds':>8s} {'steps/s':>9s} {'vs raw':>7s} {'vs serial':>9s}"
     print(header)
     for env_id in args.envs:
-        results = run(env_id, members, steps, args.nthread, args.sweep, args.repeats)
-        raw, serial = results["raw"]["steps_per_s"], results["serial"]["steps_per_s"]
+        results = run(env_id, members, steps, args.nthread, args.sweep, args.repeats, args.skip_slow)
+        raw = results["raw"]["steps_per_s"]
+        serial = results["serial"]["steps_per_s"] if "serial" in results else float("nan")
         rows = {k: v for k, v in results.items() if k != "sweep"} | {f"sweep:{k}": v for k, v in results.get("sweep", {}).items()}
         for method, r in rows.items():
             r["vs_raw"], r["vs_serial"] = r["steps_per_s"] / raw, r["steps_per_s"] / serial
-            print(f"{env_id:16s} {method:10s} {r['steps']:8d} {r['seconds']:8.2f} {r['steps_per_s']:9.0f} "
+            print(f"{env_id:16s} {method:18s} {r['steps']:8d} {r['seconds']:8.2f} {r['steps_per_s']:9.0f} "
                   f"{r['vs_raw']:7.2f} {r['vs_serial']:9.2f}")
         report["envs"][env_id] = results
     report["load_average_after"] = os.getloadavg()

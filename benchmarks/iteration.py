@@ -13,11 +13,19 @@ paper's values) and scaled by the paper's counts (Algorithm 1, Section 4.3):
   evaluations     the two 5-episode evaluations of the overwrite rule, per iteration
 
 Per iteration: 100k frames x (env step + update) + 50 generations + 2 evaluations; x 20.
-Usage: ``python -m benchmarks.iteration [--quick] [--env halfcheetah] [--out PATH]``.
+
+Each part is timed in rounds (medians). ``--compare`` also times, in the same process and
+taking turns with the tuned configuration within every round, the reference configuration:
+``td3.fast=false`` (stock ``TD3Loss`` + ``SoftUpdate`` + default Adam, TorchRL ``Collector``),
+``td3.num_threads=null`` (the process's threads), the ES loop without overlap; each part's ratio
+is reported.
+Usage: ``python -m benchmarks.iteration [--quick] [--compare] [--env halfcheetah] [--out PATH]``.
 """
 from __future__ import annotations
 
 import argparse
+import statistics
+import sys
 import time
 from pathlib import Path
 
@@ -34,6 +42,7 @@ from torchrl_esrl.run.factories import (
 from torchrl_esrl.modules.networks import flat_parameters
 from torchrl_esrl.run.determinism import seed_everything
 from torchrl_esrl.algorithm.td3_phase import td3_phase
+from torchrl_esrl.threads import torch_threads
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -47,77 +56,142 @@ def paper_config(env: str = "halfcheetah", capacity: int | None = None):
     return cfg
 
 
-def run(env: str = "halfcheetah", frames: int = 2000, generations: int = 2, capacity: int | None = None) -> dict:
+class Setup:
+    """One configuration's components, built with the recipe's factories."""
+
+    def __init__(self, env: str, capacity: int | None, reference: bool):
+        cfg = paper_config(env, capacity)
+        if reference:
+            cfg.td3.fast, cfg.td3.num_threads = False, None
+        seed_everything(0)
+        self.cfg = cfg
+        train_env = make_train_env(cfg)
+        self.actor, critic = make_actor_critic(cfg, train_env)
+        self.td3 = make_td3(cfg, self.actor, critic, train_env.action_spec)
+        self.collector, self.batches = make_td3_batches(cfg, train_env, self.td3)
+        self.buffer = make_multibuffer(cfg)
+        self.es, self.es_collector, self.threshold = make_es(cfg, self.actor), make_es_collector(cfg, self.actor), make_threshold(cfg)
+        if reference and hasattr(self.es_collector.backend, "overlap"):
+            self.es_collector.backend.overlap = False
+        self.obs_dim, self.act_dim = train_env.observation_spec["observation"].shape[-1], train_env.action_spec.shape[-1]
+        self.seconds: dict[str, list[float]] = {}  # part -> seconds per unit, one entry per round
+        self.cpu_seconds: dict[str, list[float]] = {}  # the same in process CPU time (all threads)
+        self._cpu_start = 0.0
+        self.env_steps_per_generation = 0
+
+    def record(self, part: str, seconds: float, units: int) -> None:
+        """Wall seconds of ``part`` per unit, and the process CPU time since the part's
+        ``start_cpu`` (less inflated by other processes' load than wall time)."""
+        self.seconds.setdefault(part, []).append(seconds / units)
+        self.cpu_seconds.setdefault(part, []).append((time.process_time() - self._cpu_start) / units)
+
+    def start_cpu(self) -> None:
+        self._cpu_start = time.process_time()
+
+    def env_steps(self, frames: int) -> None:
+        """TD3 acting + noisy writes, no learning (good/bad still empty: the buffer is not ready)."""
+        self.start_cpu()
+        start = time.perf_counter()
+        stats = td3_phase(frames, self.batches, self.td3, self.buffer)
+        self.record("td3_env_steps", time.perf_counter() - start, stats["frames"])
+        assert stats["updates"] == 0
+
+    def generation(self) -> None:
+        """One ES generation: evaluation, routing writes, tell."""
+        population = self.es.ask()
+        self.start_cpu()
+        start = time.perf_counter()
+        generation = self.es_collector.evaluate(population)
+        self.record("es_evaluation", time.perf_counter() - start, 1)
+        self.env_steps_per_generation = generation.frames
+        self.start_cpu()
+        start = time.perf_counter()
+        good = self.threshold.route(generation.returns)
+        self.buffer.extend(generation.transitions[generation.member_mask(good)], "good")
+        self.buffer.extend(generation.transitions[generation.member_mask(~good)], "bad")
+        self.record("es_buffer_writes", time.perf_counter() - start, 1)
+        self.start_cpu()
+        start = time.perf_counter()
+        self.es.tell(generation.returns)
+        self.record("es_tell", time.perf_counter() - start, 1)
+
+    def fill_to_ready(self) -> None:
+        """Synthetic transitions where ES has not written K yet, then a few warm-up updates."""
+        for name in self.buffer.names:
+            missing = self.cfg.buffer.min_size - len(self.buffer[name])
+            if missing > 0:
+                fill(self.buffer, missing, self.obs_dim, self.act_dim, name=name)
+        assert self.buffer.ready()
+        with torch_threads(self.td3.num_threads):
+            for _ in range(10):
+                self.td3.update(self.buffer.sample())
+
+    def updates(self, count: int) -> None:
+        with torch_threads(self.td3.num_threads):  # as td3_phase runs them
+            self.start_cpu()
+            start = time.perf_counter()
+            for _ in range(count):
+                self.td3.update(self.buffer.sample())
+        self.record("td3_updates", time.perf_counter() - start, count)
+
+    def evaluations(self) -> None:
+        self.start_cpu()
+        start = time.perf_counter()
+        self.es_collector.evaluate_policy(flat_parameters(self.actor), self.cfg.eval.episodes)
+        self.es_collector.evaluate_policy(self.es.mean.detach(), self.cfg.eval.episodes)
+        self.record("evaluations", time.perf_counter() - start, 1)
+
+    def report(self) -> dict:
+        cfg = self.cfg
+        per = {"td3_env_steps": "frame", "es_evaluation": "generation", "es_buffer_writes": "generation", "es_tell": "generation",
+               "td3_updates": "update", "evaluations": "iteration"}
+        counts = {"frame": cfg.td3.frames_per_iteration, "update": cfg.td3.frames_per_iteration * cfg.td3.updates_per_frame,
+                  "generation": cfg.es.generations_per_iteration, "iteration": 1}
+        parts, iteration_s = {}, 0.0
+        for name, rounds in self.seconds.items():
+            part = {"s_per": statistics.median(rounds), "per": per[name], "rounds_s_per": rounds, "count_per_iteration": counts[per[name]],
+                    "cpu_s_per": statistics.median(self.cpu_seconds[name])}
+            part["s_per_iteration"] = part["s_per"] * part["count_per_iteration"]
+            part["cpu_s_per_iteration"] = part["cpu_s_per"] * part["count_per_iteration"]
+            iteration_s += part["s_per_iteration"]
+            parts[name] = part
+        parts["es_evaluation"]["env_steps_per_generation"] = self.env_steps_per_generation
+        for part in parts.values():
+            part["share"] = part["s_per_iteration"] / iteration_s
+        run_s = iteration_s * cfg.iterations
+        cpu_iteration_s = sum(p["cpu_s_per_iteration"] for p in parts.values())
+        return {"cpu_iteration_s": cpu_iteration_s, "cpu_run_h": cpu_iteration_s * cfg.iterations / 3600,"env": cfg.env.id, "iterations": cfg.iterations, "parts": parts, "iteration_s": iteration_s, "run_s": run_s,
+                "run_h": run_s / 3600, "goal": "20 iterations <= 4 h", "met": run_s <= 4 * 3600,
+                "config": {"td3.fast": cfg.td3.fast, "td3.num_threads": cfg.td3.num_threads,
+                           "es_overlap": getattr(self.es_collector.backend, "overlap", None)}}
+
+
+def run(env: str = "halfcheetah", frames: int = 2000, generations: int = 2, capacity: int | None = None,
+        compare: bool = False, rounds: int = 3) -> dict:
+    """Each part measured in ``rounds`` rounds (medians); with ``compare``, the reference
+    configuration and the tuned one take turns within every round."""
     quiet_logs()
-    cfg = paper_config(env, capacity)
-    seed_everything(0)
-    train_env = make_train_env(cfg)
-    actor, critic = make_actor_critic(cfg, train_env)
-    td3 = make_td3(cfg, actor, critic, train_env.action_spec)
-    collector, batches = make_td3_batches(cfg, train_env, td3)
-    buffer = make_multibuffer(cfg)
-    es, es_collector, threshold = make_es(cfg, actor), make_es_collector(cfg, actor), make_threshold(cfg)
-    obs_dim, act_dim = train_env.observation_spec["observation"].shape[-1], train_env.action_spec.shape[-1]
-    parts = {}
-
-    # TD3 acting + noisy writes, no learning (good/bad still empty: the buffer is not ready).
-    start = time.perf_counter()
-    stats = td3_phase(frames, batches, td3, buffer)
-    parts["td3_env_steps"] = {"s_per": (time.perf_counter() - start) / stats["frames"], "per": "frame", "measured": stats["frames"]}
-    assert stats["updates"] == 0
-
-    # ES generations: evaluation, routing writes, tell.
-    t_eval = t_write = t_tell = 0.0
+    setups = ([Setup(env, capacity, reference=True)] if compare else []) + [Setup(env, capacity, reference=False)]
+    for _ in range(rounds):
+        for s in setups:
+            s.env_steps(max(1, frames // rounds))
     for _ in range(generations):
-        population = es.ask()
-        start = time.perf_counter()
-        generation = es_collector.evaluate(population)
-        t_eval += time.perf_counter() - start
-        start = time.perf_counter()
-        good = threshold.route(generation.returns)
-        buffer.extend(generation.transitions[generation.member_mask(good)], "good")
-        buffer.extend(generation.transitions[generation.member_mask(~good)], "bad")
-        t_write += time.perf_counter() - start
-        start = time.perf_counter()
-        es.tell(generation.returns)
-        t_tell += time.perf_counter() - start
-    parts["es_evaluation"] = {"s_per": t_eval / generations, "per": "generation", "measured": generations,
-                              "env_steps_per_generation": generation.frames}
-    parts["es_buffer_writes"] = {"s_per": t_write / generations, "per": "generation", "measured": generations}
-    parts["es_tell"] = {"s_per": t_tell / generations, "per": "generation", "measured": generations}
-
-    # TD3 updates from three buffers holding at least K (synthetic fill where ES has not written K yet).
-    for name in buffer.names:
-        missing = cfg.buffer.min_size - len(buffer[name])
-        if missing > 0:
-            fill(buffer, missing, obs_dim, act_dim, name=name)
-    assert buffer.ready()
-    for _ in range(10):
-        td3.update(buffer.sample())
-    start = time.perf_counter()
-    for _ in range(frames):
-        td3.update(buffer.sample())
-    parts["td3_updates"] = {"s_per": (time.perf_counter() - start) / frames, "per": "update", "measured": frames}
-
-    start = time.perf_counter()
-    es_collector.evaluate_policy(flat_parameters(actor), cfg.eval.episodes)
-    es_collector.evaluate_policy(es.mean.detach(), cfg.eval.episodes)
-    parts["evaluations"] = {"s_per": time.perf_counter() - start, "per": "iteration", "measured": 2}
-    collector.shutdown()
-
-    counts = {"frame": cfg.td3.frames_per_iteration, "update": cfg.td3.frames_per_iteration * cfg.td3.updates_per_frame,
-              "generation": cfg.es.generations_per_iteration, "iteration": 1}
-    iteration_s = 0.0
-    for part in parts.values():
-        part["count_per_iteration"] = counts[part["per"]]
-        part["s_per_iteration"] = part["s_per"] * part["count_per_iteration"]
-        iteration_s += part["s_per_iteration"]
-    for part in parts.values():
-        part["share"] = part["s_per_iteration"] / iteration_s
-    run_s = iteration_s * cfg.iterations
-    return {"env": cfg.env.id, "iterations": cfg.iterations, "parts": parts, "iteration_s": iteration_s, "run_s": run_s,
-            "run_h": run_s / 3600, "goal": "20 iterations <= 4 h", "met": run_s <= 4 * 3600,
-            "measured": {"frames": frames, "updates": frames, "generations": generations}}
+        for s in setups:
+            s.generation()
+    for s in setups:
+        s.fill_to_ready()
+    for _ in range(rounds):
+        for s in setups:
+            s.updates(max(1, frames // rounds))
+    for s in setups:
+        s.evaluations()
+    for s in setups:
+        s.collector.shutdown()
+    report = setups[-1].report()
+    report["measured"] = {"frames": frames, "updates": frames, "generations": generations, "rounds": rounds}
+    if compare:
+        report["reference"] = setups[0].report()
+    return report
 
 
 def main(argv=None) -> dict:
@@ -126,12 +200,20 @@ def main(argv=None) -> dict:
     parser.add_argument("--env", default="halfcheetah")
     parser.add_argument("--frames", type=int, default=None)
     parser.add_argument("--generations", type=int, default=None)
+    parser.add_argument("--compare", action="store_true", help="also time the reference configuration, interleaved, same process")
+    parser.add_argument("--rounds", type=int, default=3, help="rounds per part (medians reported)")
     parser.add_argument("--out", default="benchmarks/results/iteration.json")
     args = parser.parse_args(argv)
-    report = run(args.env, args.frames or (500 if args.quick else 2000), args.generations or (1 if args.quick else 2))
+    frames, generations = args.frames or (500 if args.quick else 2000), args.generations or (1 if args.quick else 2)
+    report = run(args.env, frames, generations, compare=args.compare, rounds=args.rounds)
+    reference = report.get("reference")
     for name, p in report["parts"].items():
-        print(f"{name:18s} {p['s_per'] * 1e3:10.2f} ms/{p['per']:10s} x{p['count_per_iteration']:>7g} = {p['s_per_iteration']:8.1f} s/iteration ({p['share']:5.1%})")
+        ratio = f"  {reference['parts'][name]['s_per'] / p['s_per']:5.2f}x reference" if reference else ""
+        print(f"{name:18s} {p['s_per'] * 1e3:10.2f} ms/{p['per']:10s} (cpu {p['cpu_s_per'] * 1e3:9.2f}) x{p['count_per_iteration']:>7g} = {p['s_per_iteration']:8.1f} s/iteration ({p['share']:5.1%}){ratio}")
     print(f"iteration {report['iteration_s']:.0f} s; {report['iterations']} iterations {report['run_h']:.2f} h (goal <= 4 h: {'met' if report['met'] else 'not met'})")
+    print(f"process CPU time: iteration {report['cpu_iteration_s']:.0f} s, {report['iterations']} iterations {report['cpu_run_h']:.2f} h (core-hours; ~wall for the 1-thread TD3 parts on a quiet machine)")
+    if reference:
+        print(f"reference configuration: iteration {reference['iteration_s']:.0f} s, {reference['run_h']:.2f} h; tuned {reference['iteration_s'] / report['iteration_s']:.2f}x faster")
     save_report(report, args.out)
     return report
 

@@ -30,13 +30,14 @@ def population(env_id: str, members: int, sigma: float, seed: int = 0):
     return PopulationActor(actor), params.contiguous()
 
 
+@pytest.mark.parametrize("overlap", [True, False])
 @pytest.mark.parametrize("env_id", ENV_IDS)
-def test_same_episodes_as_gym_backend(env_id):
-    steps, members = 120, 6
+def test_same_episodes_as_gym_backend(env_id, overlap):
+    steps, members = 120, 16 if overlap else 6  # the overlapped loop starts at 16 members
     policy, params = population(env_id, members, sigma=0.3)
     seeds = [11 * p + 3 for p in range(members)]
     reference = GymBackend(env_id, policy, max_episode_steps=steps).rollout(params, seeds)
-    batched = MujocoBatchBackend(env_id, policy, max_episode_steps=steps).rollout(params, seeds)
+    batched = MujocoBatchBackend(env_id, policy, max_episode_steps=steps, overlap=overlap).rollout(params, seeds)
 
     assert torch.equal(batched.lengths, reference.lengths)
     torch.testing.assert_close(batched.returns, reference.returns, rtol=1e-6, atol=1e-6)
@@ -74,7 +75,7 @@ def test_fixed_actions_match_a_raw_gymnasium_loop(env_id):
     actions = rng.uniform(env.action_space.low, env.action_space.high, (members, steps, env.action_space.shape[0]))
     actions = actions.astype(np.float32)
     seeds = [5, 6, 7]
-    backend = MujocoBatchBackend(env_id, ScriptedActions(actions), max_episode_steps=steps)
+    backend = MujocoBatchBackend(env_id, ScriptedActions(actions), max_episode_steps=steps, overlap=False)  # one policy call per step
     generation = backend.rollout(torch.zeros(members, 1), seeds)
     traj_ids = generation.transitions.get(("collector", "traj_ids"))
 
@@ -123,6 +124,24 @@ def test_early_terminated_members_contribute_only_their_steps(env_id):
     rewards = generation.transitions.get(("next", "reward")).squeeze(-1).double()
     per_member = torch.zeros(members, dtype=torch.float64).index_add_(0, traj_ids, rewards)
     torch.testing.assert_close(per_member, generation.returns, rtol=1e-5, atol=1e-4)
+
+
+@pytest.mark.parametrize("env_id", ["HalfCheetah-v5", "Walker2d-v5", "Hopper-v5"])
+def test_overlapped_halves_give_the_sequential_episodes_bit_for_bit(env_id):
+    """The overlapped loop (physics of one half during the other half's forward) produces exactly
+    the sequential loop's generation, odd population and early terminations included."""
+    steps, members = 150, 17  # odd, and above the overlap's minimum population
+    policy, params = population(env_id, members, sigma=0.3, seed=2)
+    seeds = list(range(40, 40 + members))
+    sequential = MujocoBatchBackend(env_id, policy, max_episode_steps=steps, overlap=False).rollout(params, seeds)
+    overlapped = MujocoBatchBackend(env_id, policy, max_episode_steps=steps, overlap=True).rollout(params, seeds)
+    assert torch.equal(overlapped.lengths, sequential.lengths)
+    assert torch.equal(overlapped.returns, sequential.returns)
+    for key in KEYS:
+        assert torch.equal(overlapped.transitions.get(key), sequential.transitions.get(key)), key
+    if env_id != "HalfCheetah-v5":
+        assert (sequential.lengths < steps).any()
+    assert MujocoBatchBackend(env_id, policy, overlap=True)._overlaps(members)
 
 
 def test_registered_and_chosen_by_default():

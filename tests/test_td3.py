@@ -132,12 +132,13 @@ def test_fast_td3_matches_stock_torchrl_td3():
     stock = TD3(copy.deepcopy(actor), copy.deepcopy(critic), spec, fast=False)
     torch.manual_seed(1)
     fast = TD3(actor, critic, spec)
-    assert fast.fast and type(fast.loss).__name__ == "TD3LossQ1Actor"
+    assert fast.fast and type(fast.loss).__name__ == "FusedTD3Loss"
     buffer = MultiBuffer(capacity=512, batch_size=256)
     for name in buffer.names:
         buffer.extend(_random_transitions(512, 17, 6), name)
-    for step in range(6):
+    for step in range(10):
         batch = buffer.sample()
+        batch["next", "terminated"][::9] = True  # bootstrapping cut on some transitions
         torch.manual_seed(100 + step)
         out_stock = stock.update(batch)
         torch.manual_seed(100 + step)
@@ -155,14 +156,14 @@ def test_q1_actor_loss_gradient_equals_td3loss():
     from torchrl.data import Bounded
     from torchrl.objectives import TD3Loss
 
-    from torchrl_esrl.objectives.td3 import TD3LossQ1Actor
+    from torchrl_esrl.objectives.td3 import FusedTD3Loss, TD3LossQ1Actor
 
     torch.manual_seed(0)
     spec = Bounded(-torch.ones(6), torch.ones(6), shape=(6,))
     actor, critic = make_actor(17, spec), make_critic(17, 6)
     batch = _random_transitions(256, 17, 6)
     grads, values = [], []
-    for cls in (TD3Loss, TD3LossQ1Actor):
+    for cls in (TD3Loss, TD3LossQ1Actor, FusedTD3Loss):
         torch.manual_seed(1)
         loss = cls(actor_network=actor, qvalue_network=critic, action_spec=spec, num_qvalue_nets=2)
         loss_actor, _ = loss.actor_loss(batch)
@@ -170,11 +171,115 @@ def test_q1_actor_loss_gradient_equals_td3loss():
         loss_actor.backward()
         values.append(loss_actor.detach())
         grads.append(torch.cat([p.grad.flatten() for p in actor.parameters()]))
-    torch.testing.assert_close(values[0], values[1])
-    torch.testing.assert_close(grads[0], grads[1], rtol=1e-5, atol=1e-7)
+    for value, grad in zip(values[1:], grads[1:]):
+        torch.testing.assert_close(value, values[0])
+        torch.testing.assert_close(grad, grads[0], rtol=1e-5, atol=1e-7)
+
+
+def test_fused_value_loss_equals_td3loss():
+    """FusedTD3Loss.value_loss (stacked twin critics, hand-chained target actor) gives stock
+    TD3Loss.value_loss's loss, metadata and critic gradients, with targets differing from the
+    online networks, bounds other than [-1, 1] and some terminated transitions."""
+    from torchrl.data import Bounded
+    from torchrl.objectives import TD3Loss
+
+    from torchrl_esrl.objectives.td3 import FusedTD3Loss
+
+    torch.manual_seed(0)
+    spec = Bounded(-2 * torch.ones(6), torch.linspace(0.5, 3.0, 6), shape=(6,))
+    actor, critic = make_actor(17, spec), make_critic(17, 6)
+    batch = _random_transitions(256, 17, 6)
+    batch["next", "terminated"][::5] = True
+    results = []
+    for cls in (TD3Loss, FusedTD3Loss):
+        torch.manual_seed(1)
+        loss = cls(actor_network=actor, qvalue_network=critic, action_spec=spec, num_qvalue_nets=2, delay_actor=True, delay_qvalue=True)
+        loss.make_value_estimator(gamma=0.97)
+        torch.manual_seed(2)
+        with torch.no_grad():
+            for target in (loss.target_actor_network_params, loss.target_qvalue_network_params):
+                for key, value in target.items(True, True):
+                    if "action_" not in str(key):
+                        value.add_(0.05 * torch.randn_like(value))
+        torch.manual_seed(3)
+        value, metadata = loss.value_loss(batch)
+        value.backward()
+        grads = [p.grad.clone() for p in loss.qvalue_network_params.values(True, True)]
+        results.append((value.detach(), metadata, grads))
+    (stock_value, stock_meta, stock_grads), (fused_value, fused_meta, fused_grads) = results
+    assert isinstance(results[1][0], torch.Tensor) and stock_value.item() > 0
+    torch.testing.assert_close(fused_value, stock_value)
+    assert stock_meta.keys() == fused_meta.keys()
+    for key in stock_meta:
+        torch.testing.assert_close(fused_meta[key], stock_meta[key])
+    for a, b in zip(stock_grads, fused_grads):
+        torch.testing.assert_close(b, a, rtol=1e-5, atol=1e-7)
 
 
 def _random_transitions(n, obs_dim, act_dim):
     from benchmarks.common import transitions
 
     return transitions(n, obs_dim, act_dim, torch.Generator().manual_seed(n))
+
+
+def _collector_pair_batches(fast, frames_per_batch, batches, seed=3):
+    import copy
+
+    from torchrl_esrl.envs import make_env
+
+    env = make_env("HalfCheetah-v5", seed=seed, max_episode_steps=60)  # short episodes: resets inside batches
+    torch.manual_seed(0)
+    actor, critic = make_actor(17, env.action_spec), make_critic(17, 6)
+    td3 = TD3(copy.deepcopy(actor), critic, env.action_spec)
+    collector = make_td3_collector(env, td3, frames_per_batch=frames_per_batch, fast=fast)
+    torch.manual_seed(7)  # the exploration noise stream
+    iterator = iter(collector)
+    return [next(iterator) for _ in range(batches)]
+
+
+def test_gym_td3_collector_equals_torchrl_collector():
+    """GymTD3Collector (the fast stepping path) yields the transitions TorchRL's GymEnv +
+    Collector yield: same seed, same actor, same noise stream -> identical transition keys,
+    finished-episode returns included, across episode ends."""
+    from torchrl_esrl.data.multibuffer import TRANSITION_KEYS
+
+    for frames_per_batch, count in ((1, 130), (25, 6)):
+        reference = torch.cat(_collector_pair_batches(False, frames_per_batch, count))
+        fast = torch.cat(_collector_pair_batches(True, frames_per_batch, count))
+        assert reference["next", "done"].sum() >= 2  # episodes ended inside the window
+        for key in (*TRANSITION_KEYS, ("next", "episode_reward")):
+            assert torch.equal(reference.get(key), fast.get(key)), (frames_per_batch, key)
+        assert finished_episode_returns(reference) == finished_episode_returns(fast)
+
+
+@pytest.mark.parametrize("fast", [True, False])
+def test_td3_collector_resumes_mid_episode(fast):
+    """TD3EnvState restores a fresh collector (the fast path or TorchRL's Collector) mid-episode:
+    it continues with exactly the frames the uninterrupted collector produces."""
+    import copy
+
+    from torchrl_esrl.collectors.td3_collector import TD3EnvState
+    from torchrl_esrl.data.multibuffer import TRANSITION_KEYS
+    from torchrl_esrl.envs import make_env
+
+    def collector(seed):
+        env = make_env("HalfCheetah-v5", seed=seed, max_episode_steps=60)
+        torch.manual_seed(0)
+        td3 = TD3(make_actor(17, env.action_spec), make_critic(17, 6), env.action_spec)
+        return make_td3_collector(env, td3, frames_per_batch=10, fast=fast)
+
+    first = collector(3)
+    batches = iter(first)
+    for _ in range(7):  # 70 frames: mid-way through the second episode
+        next(batches)
+    state = copy.deepcopy(TD3EnvState(first).state_dict())
+    torch.manual_seed(11)
+    expected = torch.cat([next(batches) for _ in range(8)])
+    resumed = collector(99)  # another seed: everything must come from the state
+    TD3EnvState(resumed).load_state_dict(state)
+    torch.manual_seed(11)
+    batches = iter(resumed)
+    got = torch.cat([next(batches) for _ in range(8)])
+    assert expected["next", "done"].any()
+    for key in (*TRANSITION_KEYS, ("next", "episode_reward")):
+        assert torch.equal(got.get(key), expected.get(key)), key

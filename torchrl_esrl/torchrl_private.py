@@ -42,38 +42,24 @@ def tensor_storage_data(storage) -> TensorDictBase | None:
 
 
 # ---------------------------------------------------------------------- objectives (TD3 loss)
-# Used by a TD3Loss subclass whose actor loss runs one critic instead of TorchRL's two; it
-# re-implements ``TD3Loss.actor_loss`` with TD3Loss's own helpers, which are private.
-
-
 def loss_priority_weight(loss, tensordict):
-    """``LossModule._maybe_get_priority_weight``: the importance weights of a prioritized batch
-    (None otherwise). Private: no public accessor; a subclass overriding ``actor_loss`` must
-    weigh its loss exactly as TorchRL does."""
+    """The importance weights a TorchRL loss applies to ``tensordict`` (None without prioritised
+    sampling). Used by the TD3 loss overrides to fall back to TorchRL's own code when weights
+    are present; the public API has no getter (``LossModule._maybe_get_priority_weight``)."""
     return loss._maybe_get_priority_weight(tensordict)
 
 
-def loss_detached_qvalue_params(loss):
-    """``TD3Loss._cached_detach_qvalue_network_params``: the critics' parameters detached from the
-    graph (the actor loss must not train the critics). Private: TorchRL builds and caches this
-    TensorDict internally; rebuilding it per call costs a detach of every parameter per update."""
-    return loss._cached_detach_qvalue_network_params
-
-
 def reduce_loss(loss, value, tensordict, weights):
-    """``LossModule._reduce_loss``: the loss's ``reduction`` ("mean"...) with priority weights.
-    Private: the public ``loss.reduction`` names the reduction but TorchRL applies it (and the
-    weights) only through this method."""
+    """A TorchRL loss's reduction (``reduction`` and priority weights) of a per-sample loss;
+    ``LossModule._reduce_loss`` has no public counterpart and the Q1-only actor loss must reduce
+    exactly as ``TD3Loss.actor_loss`` does."""
     return loss._reduce_loss(value, tensordict=tensordict, weights=weights)
 
 
-def soft_update_pairs(updater) -> tuple[list, list]:
-    """Source and target tensors of a TorchRL ``SoftUpdate`` (``target.lerp_(source, 1 - eps)``),
-    as two aligned lists, for one ``torch._foreach_lerp_`` over all of them.
-
-    Private: ``SoftUpdate`` keeps them in ``_sources``/``_targets`` (filled lazily, hence the
-    ``getattr`` over ``_target_names`` first) and offers only a per-tensor ``step()``.
-    """
+def soft_update_tensors(updater) -> tuple[list, list]:
+    """(source, target) tensor lists of a ``SoftUpdate``, in the order ``SoftUpdate.step`` visits
+    them. ``SoftUpdate`` keeps them in ``_sources``/``_targets`` (filled lazily by looking the
+    names up on the loss) with no public accessor; one foreach call over them replaces its loop."""
     for name in updater._target_names:
         getattr(updater.loss_module, name)
     sources, targets = [], []
@@ -81,7 +67,7 @@ def soft_update_pairs(updater) -> tuple[list, list]:
         target = updater._targets.get(f"target_{key}")
         if target.requires_grad:
             raise RuntimeError("the target parameter is part of a graph.")
-        if isinstance(param, TensorDictBase):  # the loss's stacked parameter TensorDicts
+        if hasattr(param, "keys"):  # the loss's stacked parameter TensorDicts
             for leaf in param.keys(True, True):
                 sources.append(param.get(leaf).data)
                 targets.append(target.get(leaf).data)
@@ -91,45 +77,33 @@ def soft_update_pairs(updater) -> tuple[list, list]:
     return sources, targets
 
 
+def detached_qvalue_params(loss):
+    """A TD3 loss's critic parameters, detached and cached per step (``TD3Loss`` builds them for
+    its actor loss; there is no public accessor, and detaching again each step costs time)."""
+    return loss._cached_detach_qvalue_network_params
+
+
 # ------------------------------------------------------------------ collectors (TD3 env state)
-# A checkpoint taken mid-episode restores the collector's carried tensordict (the observation it
-# acts on next, RewardSum's and StepCounter's running values) and the gymnasium simulator.
-# ``Collector.state_dict`` saves frames/iter/trajectory pool but not the carrier, and its
-# ``load_state_dict`` starts a fresh trajectory (a new trajectory id) instead of continuing one.
-
-
-def collector_carrier(collector) -> TensorDictBase:
-    """The tensordict a ``Collector`` carries between steps (``_carrier``). Private: no accessor."""
-    return collector._carrier
-
-
-def set_collector_carrier(collector, carrier: TensorDictBase) -> None:
-    """Replace the carried tensordict (restore mid-episode). Private: no setter."""
-    collector._carrier = carrier
-
-
-def collector_counters(collector) -> tuple[int, int]:
-    """``(frames, iter)`` of a ``Collector``. Public read: ``collector.state_dict()`` (which also
-    copies the env transforms' and policy's state); this reads the two counters alone."""
-    return int(collector._frames), int(collector._iter)
-
-
-def set_collector_counters(collector, frames: int, iteration: int) -> None:
-    """Set ``(frames, iter)``. Private: the public ``load_state_dict`` also allocates a new
-    trajectory id and needs the env's full state dict."""
-    collector._frames, collector._iter = int(frames), int(iteration)
-
-
-def collector_traj_pool(collector):
-    """The ``Collector``'s trajectory-id pool (``state_dict``/``load_state_dict``). Private: only
-    reachable through ``Collector.load_state_dict``, which also resets the carrier's ids."""
-    return collector._traj_pool
-
-
 def gym_env_of(env):
-    """The gymnasium env inside a TorchRL ``GymEnv``/``GymWrapper`` (under any TransformedEnv):
-    for its simulator state (MuJoCo ``mj_getState``, ``np_random``, wrapper counters). Private:
-    ``GymWrapper`` keeps it in ``_env`` and has no public accessor."""
+    """The gymnasium env inside a TorchRL ``GymEnv``, possibly under ``TransformedEnv`` layers.
+    ``GymEnv`` keeps it as ``_env`` with no public accessor; the fast TD3 stepping path and the
+    TD3 checkpoint state need the very object TorchRL seeded."""
     while not hasattr(env, "_env"):
         env = env.base_env
     return env._env
+
+
+def collector_carrier(collector):
+    """The TensorDict a TorchRL ``Collector`` carries between batches (the next step's input).
+    ``Collector.state_dict`` leaves it out; a checkpoint taken mid-episode needs it."""
+    return collector._carrier
+
+
+def restore_collector(collector, frames: int, iterations: int, carrier, traj_pool_state=None) -> None:
+    """Put a TorchRL ``Collector`` back where a checkpoint left it: its counters, carried
+    TensorDict and trajectory-id pool (``Collector.load_state_dict`` restores neither the
+    carrier nor, for a single env, the counters)."""
+    collector._frames, collector._iter = int(frames), int(iterations)
+    if traj_pool_state is not None:
+        collector._traj_pool.load_state_dict(traj_pool_state)
+    collector._carrier = carrier

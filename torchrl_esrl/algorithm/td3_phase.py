@@ -8,6 +8,7 @@ from dataclasses import dataclass, field
 import torch
 from tensordict import TensorDictBase
 
+from torchrl_esrl.threads import torch_threads
 from torchrl_esrl.collectors.td3_collector import finished_episode_returns
 
 
@@ -49,35 +50,37 @@ def td3_phase(
 ) -> dict[str, float]:
     """Act for ``frames`` frames, writing to ``buffer``'s noisy part and learning once it is ready.
 
-    ``batches`` is an iterator over a TorchRL collector (kept alive across phases so episodes
-    continue where they stopped). ``buffer`` is a :class:`~torchrl_esrl.data.multibuffer.MultiBuffer`
+    ``batches`` is an iterator over a TD3 collector (:func:`~torchrl_esrl.collectors.td3_collector.make_td3_collector`,
+    kept alive across phases so episodes continue where they stopped). The phase runs on
+    ``td3.num_threads`` torch threads. ``buffer`` is a :class:`~torchrl_esrl.data.multibuffer.MultiBuffer`
     (written under ``"noisy"``) or any TorchRL replay buffer. ``on_episode`` sees each finished
     training episode's return (Algorithm 1 lets them raise the threshold). ``progress`` (a
     :class:`PhaseProgress`) holds the phase's counters: pass the one
     restored from a checkpoint to finish a phase interrupted mid-way.
     """
     p = PhaseProgress() if progress is None else progress
-    is_multibuffer = hasattr(buffer, "ready")
-    while p.collected < frames:
-        batch = next(batches)
-        p.collected += batch.numel()
-        if is_multibuffer:
-            buffer.extend(batch, "noisy")
-        else:
-            buffer.extend(batch)
-        for episode_return in finished_episode_returns(batch):
-            p.episodes += 1
-            if on_episode is not None:
-                on_episode(episode_return)
-        if buffer.ready() if is_multibuffer else len(buffer) > 0:
-            p.owed += batch.numel() * updates_per_frame  # fractional updates carried between batches
-            while p.owed >= 1:
-                p.owed -= 1
-                for key, value in td3.update(buffer.sample()).items():
-                    p.losses.setdefault(key, []).append(value)
-                p.updates += 1
-        if on_batch is not None:
-            on_batch(batch.numel(), {"updates": p.updates, "episodes": p.episodes})
+    with torch_threads(td3.num_threads):  # the TD3 update's best count (TD3's docstring)
+        is_multibuffer = hasattr(buffer, "ready")
+        while p.collected < frames:
+            batch = next(batches)
+            p.collected += batch.numel()
+            if is_multibuffer:
+                buffer.extend(batch, "noisy")
+            else:
+                buffer.extend(batch)
+            for episode_return in finished_episode_returns(batch):
+                p.episodes += 1
+                if on_episode is not None:
+                    on_episode(episode_return)
+            if buffer.ready() if is_multibuffer else len(buffer) > 0:
+                p.owed += batch.numel() * updates_per_frame  # fractional updates carried between batches
+                while p.owed >= 1:
+                    p.owed -= 1
+                    for key, value in td3.update(buffer.sample()).items():
+                        p.losses.setdefault(key, []).append(value)
+                    p.updates += 1
+            if on_batch is not None:
+                on_batch(batch.numel(), {"updates": p.updates, "episodes": p.episodes})
     stats = {"updates": p.updates, "episodes": p.episodes, "frames": p.collected, "critic_loss": "", "actor_loss": ""}  # "": no update yet
     stats.update({key: sum(v) / len(v) for key, v in p.losses.items()})
     return stats

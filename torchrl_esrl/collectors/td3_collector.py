@@ -1,15 +1,29 @@
-"""The TD3 side's collector (paper, Algorithm 1 "act with exploration noise"): a TorchRL
-``Collector`` over the training env, acting with the exploration policy."""
+"""The TD3 side's collector (paper, Algorithm 1 "act with exploration noise").
+
+Two equal paths over the training env of :func:`torchrl_esrl.envs.make_env`, acting with the
+exploration policy: TorchRL's ``Collector`` (the reference) and :class:`GymTD3Collector`, which
+steps the same gymnasium env directly (the default, ``td3.fast``). Both yield TensorDicts with
+the replay buffer's transition keys and ``("next", "episode_reward")``.
+"""
 from __future__ import annotations
 
 import numpy as np
+import torch
 from tensordict import TensorDict, TensorDictBase
 from torchrl.collectors import Collector
 
+from torchrl_esrl.modules.networks import squash
+from torchrl_esrl.modules.warmup import RandomWarmup
+from torchrl_esrl.torchrl_private import collector_carrier, gym_env_of, restore_collector
 
-def make_td3_collector(env, td3, frames_per_batch: int = 1, device="cpu") -> Collector:
-    """TorchRL collector acting with the exploration policy; runs for as long as it is iterated.
-    The env steps on its own device (CPU physics), the policy and the collected data are on ``device``."""
+def make_td3_collector(env, td3, frames_per_batch: int = 1, fast: bool = False, device="cpu"):
+    """A collector acting with the exploration policy; runs for as long as it is iterated.
+
+    ``fast`` (on CPU): :class:`GymTD3Collector`; otherwise TorchRL's ``Collector``, whose env steps
+    on its own device (CPU physics) while the policy and the collected data are on ``device``.
+    """
+    if fast and torch.device(device).type == "cpu":
+        return GymTD3Collector(env, td3, frames_per_batch)
     return Collector(
         env,
         td3.exploration_policy,
@@ -20,6 +34,130 @@ def make_td3_collector(env, td3, frames_per_batch: int = 1, device="cpu") -> Col
         policy_device=device,
         storing_device=device,
     )
+
+
+class GymTD3Collector:
+    """TD3's acting loop stepping the gymnasium env of a TorchRL ``GymEnv`` directly.
+
+    ``Collector`` + ``TransformedEnv(GymEnv, DoubleToFloat, RewardSum, StepCounter)`` spends
+    ~4 ms per frame building, stacking and cloning TensorDicts around a ~0.1 ms MuJoCo step
+    and a ~0.05 ms actor forward (docs/performance.md). This loop does what that stack does for
+    this env and this policy, in the same order: ``gym_env.reset()`` when an episode ends (no
+    seed: the TorchRL env was seeded by ``set_seed``), the actor's MLP and ``TanhModule``
+    squashing, the ``AdditiveGaussianModule`` draw (one ``torch.normal`` per frame, the same RNG
+    stream) projected on the action spec, float32 observations and rewards, and the float32
+    running episode return of ``RewardSum``. Each batch of ``frames_per_batch`` frames comes out
+    as one TensorDict (tests/test_td3.py checks it against the ``Collector`` path, frame by
+    frame). Written by hand because TorchRL offers no lighter single-env stepping path.
+    """
+
+    def __init__(self, env, td3, frames_per_batch: int = 1):
+        self.env = env
+        self.gym_env = gym_env_of(env)
+        self.frames_per_batch = int(frames_per_batch)
+        self.device = env.device
+        policy = td3.exploration_policy
+        # Fujimoto's uniform warm-up (td3.random_frames) wraps the noisy actor: its draws, then the actor's.
+        self.warmup = policy if isinstance(policy, RandomWarmup) else None
+        actor, noise = (policy.policy if self.warmup is not None else policy)[:2]
+        # The actor's Linear layers, as (weight, bias, activation) with the Parameter objects
+        # themselves: TD3's optimiser and load_flat_parameters update them in place.
+        self.layers, activation = [], None
+        for module in reversed(actor[0].module):
+            if isinstance(module, torch.nn.Linear):
+                self.layers.insert(0, (module.weight, module.bias, activation))
+                activation = None
+            else:
+                activation = module
+        self.tanh_module = actor[1]
+        self.noise = noise
+        self.action_spec = env.action_spec
+        # Bounded.project is clamp(low, high) when out of the box and the identity inside: clamp.
+        self.action_low, self.action_high = self.action_spec.space.low, self.action_spec.space.high
+        self.observation_dim = env.observation_spec["observation"].shape[-1]
+        self.action_dim = self.action_spec.shape[-1]
+        self.observation: np.ndarray | None = None  # float64, as gymnasium returns it; None: reset next
+        self.episode_reward = np.float32(0)
+        self.frames = 0
+
+    def __iter__(self):
+        while True:
+            yield self.next_batch()
+
+    @torch.no_grad()
+    def next_batch(self) -> TensorDict:
+        n, gym_env = self.frames_per_batch, self.gym_env
+        observations = np.empty((n, self.observation_dim), dtype=np.float32)
+        next_observations = np.empty((n, self.observation_dim), dtype=np.float32)
+        actions = torch.empty(n, self.action_dim)
+        rewards = np.empty((n, 1), dtype=np.float32)
+        terminated = np.empty((n, 1), dtype=bool)
+        truncated = np.empty((n, 1), dtype=bool)
+        episode_rewards = np.empty((n, 1), dtype=np.float32)
+        tanh, noise, layers = self.tanh_module, self.noise, self.layers
+        mean, std = noise.mean.expand(1, self.action_dim), noise.std.expand(1, self.action_dim)
+        for i in range(n):
+            if self.observation is None:
+                self.observation = gym_env.reset()[0]
+                self.episode_reward = np.float32(0)
+            observations[i] = self.observation
+            if self.warmup is not None and self.warmup.warming_up:
+                action = self.warmup.draw((1,))
+            else:
+                x = torch.from_numpy(observations[i : i + 1])
+                for weight, bias, activation in layers:  # the actor's MLP, as its modules compute it
+                    x = torch.nn.functional.linear(x, weight, bias)
+                    if activation is not None:
+                        x = activation(x)
+                action = squash(tanh, x, tanh.action_low, tanh.action_high)
+                action = torch.clamp(action + torch.normal(mean=mean, std=std) * noise.sigma, self.action_low, self.action_high)
+            actions[i] = action[0]
+            observation, reward, term, trunc, _ = gym_env.step(action[0].numpy())
+            next_observations[i] = observation
+            rewards[i, 0] = reward
+            self.episode_reward = self.episode_reward + rewards[i, 0]
+            episode_rewards[i, 0] = self.episode_reward
+            terminated[i, 0], truncated[i, 0] = term, trunc
+            self.observation = None if term or trunc else observation
+        self.frames += n
+        done = torch.from_numpy(terminated | truncated)
+        return TensorDict(
+            {
+                "observation": torch.from_numpy(observations),
+                "action": actions,
+                "next": TensorDict(
+                    {
+                        "observation": torch.from_numpy(next_observations),
+                        "reward": torch.from_numpy(rewards),
+                        "done": done,
+                        "terminated": torch.from_numpy(terminated),
+                        "truncated": torch.from_numpy(truncated),
+                        "episode_reward": torch.from_numpy(episode_rewards),
+                    },
+                    batch_size=[n],
+                ),
+            },
+            batch_size=[n],
+            device=self.device,  # the buffers' storage device: TorchRL's writer then skips a .to() of every leaf
+        )
+
+    def state_dict(self) -> dict:
+        return {
+            "observation": None if self.observation is None else self.observation.copy(),
+            "episode_reward": float(self.episode_reward),
+            "frames": self.frames,
+            "gym": gym_env_state(self.gym_env),
+        }
+
+    def load_state_dict(self, state: dict) -> None:
+        observation = state["observation"]
+        self.observation = None if observation is None else np.asarray(observation, dtype=np.float64)
+        self.episode_reward = np.float32(state["episode_reward"])
+        self.frames = int(state["frames"])
+        load_gym_env_state(self.gym_env, state["gym"])
+
+    def shutdown(self) -> None:
+        """Nothing to stop (``Collector`` has threads/processes to end; this loop has none)."""
 
 
 def finished_episode_returns(batch: TensorDictBase) -> list[float]:
@@ -76,8 +214,9 @@ def load_gym_env_state(gym_env, state: dict) -> None:
 
 
 class TD3EnvState:
-    """The TD3 side's environment, as iterated by a TorchRL ``Collector`` across phases.
+    """The TD3 side's environment, as iterated by its collector across phases.
 
+    :class:`GymTD3Collector` saves its own state (observation, running return, simulator).
     TorchRL's ``Collector.state_dict`` covers its counters and the transforms' buffers but not
     the carried tensordict nor the simulator, so both are saved here as well.
     """
@@ -86,24 +225,25 @@ class TD3EnvState:
         self.collector = collector
 
     def _gym_env(self):
-        env = self.collector.env
-        while not hasattr(env, "_env"):
-            env = env.base_env
-        return env._env
+        return gym_env_of(self.collector.env)
 
     def state_dict(self) -> dict:
+        if isinstance(self.collector, GymTD3Collector):
+            return {"gym_collector": self.collector.state_dict()}
         collector_state = {k: v for k, v in self.collector.state_dict().items() if k != "policy_state_dict"}  # policy: saved with TD3
         return {
             "collector": collector_state,
-            "carrier": self.collector._carrier.to_dict(),
+            "carrier": collector_carrier(self.collector).to_dict(),
             "gym": gym_env_state(self._gym_env()),
         }
 
     def load_state_dict(self, state: dict) -> None:
+        if isinstance(self.collector, GymTD3Collector):
+            self.collector.load_state_dict(state["gym_collector"])
+            return
         collector = self.collector
         collector.env.transform.load_state_dict(state["collector"]["env_state_dict"])
-        collector._frames, collector._iter = int(state["collector"]["frames"]), int(state["collector"]["iter"])
-        if "traj_pool" in state["collector"]:
-            collector._traj_pool.load_state_dict(state["collector"]["traj_pool"])
-        collector._carrier = TensorDict(state["carrier"], batch_size=collector._carrier.batch_size)
+        collector_state = state["collector"]
+        carrier = TensorDict(state["carrier"], batch_size=collector_carrier(collector).batch_size)
+        restore_collector(collector, collector_state["frames"], collector_state["iter"], carrier, collector_state.get("traj_pool"))  # absent: no pool saved
         load_gym_env_state(self._gym_env(), state["gym"])

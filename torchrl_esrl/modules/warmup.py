@@ -9,6 +9,8 @@ whose Algorithm 1 acts with the noisy actor from the first step; docs/deviations
 """
 from __future__ import annotations
 
+import math
+
 import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
@@ -46,16 +48,18 @@ class RandomWarmup(TensorDictModuleBase):
     def warming_up(self) -> bool:
         return self.frames_acted < self.frames
 
+    def draw(self, batch_shape: tuple[int, ...]) -> torch.Tensor:
+        """Uniform actions for ``batch_shape`` frames (counted as acted)."""
+        uniform = torch.rand((*batch_shape, *self.low.shape), generator=self.generator)
+        self.frames_acted += max(1, math.prod(batch_shape))
+        return self.low + (self.high - self.low) * uniform
+
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
-        steps = max(1, tensordict.batch_size.numel())
         if self.warming_up:
-            shape = (*tensordict.batch_size, *self.low.shape)
-            uniform = torch.rand(shape, generator=self.generator)
-            tensordict.set(self.action_key, self.low + (self.high - self.low) * uniform)
-        else:
-            tensordict = self.policy(tensordict)
-        self.frames_acted += steps
-        return tensordict
+            tensordict.set(self.action_key, self.draw(tuple(tensordict.batch_size)))
+            return tensordict
+        self.frames_acted += max(1, tensordict.batch_size.numel())
+        return self.policy(tensordict)
 
     def get_extra_state(self) -> dict:
         return {"frames_acted": torch.tensor(self.frames_acted), "generator": self.generator.get_state()}

@@ -7,10 +7,14 @@ the policy delay; :func:`torchrl_esrl.algorithm.td3_phase.td3_phase` runs it ins
 from __future__ import annotations
 
 import torch
+from torch import nn
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictSequential
 from torchrl.modules import AdditiveGaussianModule
 from torchrl.objectives import SoftUpdate, TD3Loss
+
+from torchrl_esrl.modules.networks import squash
+from torchrl_esrl.torchrl_private import detached_qvalue_params, loss_priority_weight, reduce_loss, soft_update_tensors
 
 
 class TD3LossQ1Actor(TD3Loss):
@@ -24,16 +28,143 @@ class TD3LossQ1Actor(TD3Loss):
     """
 
     def actor_loss(self, tensordict) -> tuple[torch.Tensor, dict]:
-        weights = self._maybe_get_priority_weight(tensordict)
+        weights = loss_priority_weight(self, tensordict)
         td = tensordict.select(*self.actor_network.in_keys, strict=False)
         with self.actor_network_params.to_module(self.actor_network, preserve_module_state=False):
             td = self.actor_network(td)
         td = td.select(*self.qvalue_network.in_keys, strict=False)
-        with self._cached_detach_qvalue_network_params[0].to_module(self.qvalue_network, preserve_module_state=False):
+        with detached_qvalue_params(self)[0].to_module(self.qvalue_network, preserve_module_state=False):
             td = self.qvalue_network(td)
         state_action_value = td.get(self.tensor_keys.state_action_value).squeeze(-1)
-        loss_actor = self._reduce_loss(-state_action_value, tensordict=tensordict, weights=weights)
+        loss_actor = reduce_loss(self, -state_action_value, tensordict, weights)
         return loss_actor, {"state_action_value_actor": state_action_value.detach()}
+
+
+def _plain_mlp(module: nn.Module):
+    """``[(linear index, activation), ...]`` of an ``nn.Sequential`` of Linear layers and tanh/ReLU
+    activations (TorchRL's ``MLP`` as built by :mod:`torchrl_esrl.modules.networks`), or None."""
+    layers, children = [], list(module.named_children()) if isinstance(module, nn.Sequential) else None
+    if not children:
+        return None
+    for name, child in children:
+        if isinstance(child, nn.Linear):
+            layers.append([name, None])
+        elif type(child) in _ACTIVATIONS and layers and layers[-1][1] is None:
+            layers[-1][1] = _ACTIVATIONS[type(child)]
+        else:
+            return None
+    if any(act is None for _, act in layers[:-1]) or layers[-1][1] is not None:
+        return None
+    return [(name, act) for name, act in layers]
+
+
+_ACTIVATIONS = {nn.Tanh: torch.tanh, nn.ReLU: torch.relu}
+
+
+class FusedTD3Loss(TD3LossQ1Actor):
+    """:class:`TD3LossQ1Actor` whose ``value_loss`` runs the twin critics as one stacked network
+    and whose losses use the parameters directly rather than through module swaps.
+
+    ``TD3Loss.value_loss`` evaluates the two critics (and their targets) with ``vmap`` over a
+    TensorDict-expanded batch and the target actor through a parameter swap into the module;
+    each step pays TensorDict and functorch bookkeeping around ~10 small matmuls. Here the
+    critics' stacked parameters (TorchRL keeps them as ``[2, ...]`` tensors) are used directly:
+    one ``torch.baddbmm`` over a ``[2, in, out]`` weight stack per layer for both critics, and
+    the target actor as a chain of ``torch.addmm``. The arithmetic is TD3Loss's: same noise draw
+    (same RNG order), clamp to the action bounds, ``min`` of the target critics, TD(0) target
+    ``r + gamma * (1 - terminated) * Q'``, squared error summed over the critics and averaged
+    over the batch (tests/test_td3.py compares losses, gradients and targets after several
+    updates with stock ``TD3Loss``). ``actor_loss`` is :class:`TD3LossQ1Actor`'s, written the
+    same way. Networks of another shape, other value estimators, losses or reductions, or
+    prioritised weights fall back to the parent's code.
+    """
+
+    def _fused_layout(self):
+        layout = self.__dict__.get("_fused")
+        if layout is None:
+            layout = False
+            actor, critic = self.actor_network, self.qvalue_network
+            if (
+                self.loss_function == "l2"
+                and self.reduction == "mean"
+                and type(self.value_estimator).__name__ == "TD0Estimator"
+                and isinstance(actor, TensorDictSequential)
+                and len(actor.module) == 2
+                and type(actor.module[1]).__name__ == "TanhModule"
+                and list(actor.in_keys) == ["observation"]
+                and self.tensor_keys.action == "action"
+            ):
+                actor_mlp = _plain_mlp(actor.module[0].module)
+                critic_mlp = _plain_mlp(getattr(critic, "module", None))
+                if actor_mlp and critic_mlp and list(critic.in_keys) == ["observation", "action"] and len(critic.out_keys) == 1:
+                    layout = (actor_mlp, critic_mlp)
+            self.__dict__["_fused"] = layout
+        return layout
+
+    def value_loss(self, tensordict) -> tuple[torch.Tensor, dict]:
+        layout = self._fused_layout()
+        if not layout or loss_priority_weight(self, tensordict) is not None:
+            return super().value_loss(tensordict)
+        actor_mlp, critic_mlp = layout
+        action = tensordict.get(self.tensor_keys.action)
+        noise = (torch.randn_like(action) * self.policy_noise).clamp(-self.noise_clip, self.noise_clip)  # drawn first, as TD3Loss
+        with torch.no_grad():
+            x = self._actor(self.target_actor_network_params, actor_mlp, tensordict.get(("next", "observation")))
+            next_action = (x + noise).clamp(self.min_action, self.max_action)
+            next_q = self._twin_critics(self.target_qvalue_network_params, critic_mlp, tensordict.get(("next", "observation")), next_action)
+            next_value = next_q.min(0)[0].unsqueeze(-1)
+            reward = tensordict.get(("next", "reward"))
+            terminated = tensordict.get(("next", "terminated"), default=tensordict.get(("next", "done")))
+            target_value = (reward + self.value_estimator.gamma * (~terminated).int() * next_value).squeeze(-1)
+        current_qvalue = self._twin_critics(self.qvalue_network_params, critic_mlp, tensordict.get("observation"), action)
+        loss_qval = (current_qvalue - target_value).pow(2).sum(0).mean()
+        metadata = {
+            "td_error": (current_qvalue.detach() - target_value).pow(2),
+            "next_state_value": next_value.squeeze(-1),
+            "pred_value": current_qvalue.detach(),
+            "target_value": target_value,
+        }
+        return loss_qval, metadata
+
+    def actor_loss(self, tensordict) -> tuple[torch.Tensor, dict]:
+        """``-Q_1(s, pi(s)).mean()`` as :class:`TD3LossQ1Actor`, with the actor and the first
+        critic's (detached) parameters used directly instead of swapped into the modules."""
+        layout = self._fused_layout()
+        if not layout or loss_priority_weight(self, tensordict) is not None:
+            return super().actor_loss(tensordict)
+        actor_mlp, critic_mlp = layout
+        observation = tensordict.get("observation")
+        action = self._actor(self.actor_network_params, actor_mlp, observation)
+        critic = detached_qvalue_params(self)
+        x = torch.cat([observation, action], -1)
+        for name, act in critic_mlp:
+            x = torch.addmm(critic.get(("module", name, "bias"))[0], x, critic.get(("module", name, "weight"))[0].t())
+            if act is not None:
+                x = act(x)
+        state_action_value = x.squeeze(-1)
+        return -state_action_value.mean(), {"state_action_value_actor": state_action_value.detach()}
+
+    def _actor(self, params, actor_mlp, observation) -> torch.Tensor:
+        """The actor (MLP + ``TanhModule``) with ``params`` (online or target), as its modules compute it."""
+        x = observation
+        for name, act in actor_mlp:
+            x = torch.addmm(params.get(("module", "0", "module", name, "bias")), x, params.get(("module", "0", "module", name, "weight")).t())
+            if act is not None:
+                x = act(x)
+        bounds = params.get(("module", "1", "action_low")), params.get(("module", "1", "action_high"))
+        return squash(self.actor_network.module[1], x, *bounds)
+
+    @staticmethod
+    def _twin_critics(params, critic_mlp, observation, action) -> torch.Tensor:
+        """``[2, B]`` values of the stacked critics: one ``baddbmm`` per layer."""
+        x = torch.cat([observation, action], -1).expand(params.batch_size[0], *observation.shape[:-1], -1)
+        for name, act in critic_mlp:
+            weight = params.get(("module", name, "weight"))  # [2, out, in]
+            bias = params.get(("module", name, "bias"))  # [2, out]
+            x = torch.baddbmm(bias.unsqueeze(1), x, weight.transpose(1, 2))
+            if act is not None:
+                x = act(x)
+        return x.squeeze(-1)
 
 
 class ForeachSoftUpdate(SoftUpdate):
@@ -51,21 +182,7 @@ class ForeachSoftUpdate(SoftUpdate):
             raise RuntimeError("ForeachSoftUpdate must be initialized (init_()) before step()")
         pairs = self.__dict__.get("_pairs")
         if pairs is None:
-            for name in self._target_names:
-                getattr(self.loss_module, name)
-            sources, targets = [], []
-            for key, param in self._sources.items():
-                target = self._targets.get(f"target_{key}")
-                if target.requires_grad:
-                    raise RuntimeError("the target parameter is part of a graph.")
-                if isinstance(param, TensorDictBase):  # the loss's stacked parameter TensorDicts
-                    for leaf in param.keys(True, True):
-                        sources.append(param.get(leaf).data)
-                        targets.append(target.get(leaf).data)
-                else:
-                    sources.append(param.data)
-                    targets.append(target.data)
-            pairs = self.__dict__["_pairs"] = (sources, targets)
+            pairs = self.__dict__["_pairs"] = soft_update_tensors(self)
         torch._foreach_lerp_(pairs[1], pairs[0], 1 - self.eps)
 
 
@@ -90,6 +207,10 @@ class TD3:
             gradients and target updates, tests/test_td3.py).
         optimizer_impl: ``"fused"``, ``"foreach"`` or ``"default"`` (torch's choice, a per-tensor
             loop on CPU); None follows ``fast``.
+        num_threads: torch threads while :func:`~torchrl_esrl.algorithm.td3_phase.td3_phase` runs
+            (None: leave the process's count). One thread measured fastest for these 256-wide
+            networks when OpenMP's wait policy is ``PASSIVE``, where every multi-threaded op pays
+            a thread wake-up (docs/performance.md).
     """
 
     def __init__(
@@ -107,11 +228,12 @@ class TD3:
         loss_function: str = "l2",
         fast: bool = True,
         optimizer_impl: str | None = None,
+        num_threads: int | None = None,
     ):
         self.actor = actor
         self.action_spec = action_spec
         self.fast = bool(fast)
-        self.loss = (TD3LossQ1Actor if self.fast else TD3Loss)(
+        self.loss = (FusedTD3Loss if self.fast else TD3Loss)(
             actor_network=actor,
             qvalue_network=critic,
             action_spec=action_spec,
@@ -136,6 +258,7 @@ class TD3:
             actor,
             AdditiveGaussianModule(spec=action_spec, sigma_init=1.0, sigma_end=1.0, mean=0.0, std=float(exploration_noise)),
         )
+        self.num_threads = num_threads
         self.updates = 0
 
     def update(self, batch: TensorDictBase) -> dict[str, float]:

@@ -62,6 +62,7 @@ def make_td3(cfg: DictConfig, actor, critic, action_spec) -> TD3:
         exploration_noise=c.exploration_noise,
         loss_function=c.loss_function,
         fast=c.fast,
+        num_threads=c.num_threads,
     )
     if c.random_frames > 0:
         td3.exploration_policy = RandomWarmup(td3.exploration_policy, action_spec, c.random_frames, seed=int(cfg.seed) + 3)
@@ -69,8 +70,9 @@ def make_td3(cfg: DictConfig, actor, critic, action_spec) -> TD3:
 
 
 def make_td3_batches(cfg: DictConfig, env, td3: TD3):
-    """The TD3 collector and an iterator over it that lives across iterations."""
-    collector = make_td3_collector(env, td3, cfg.td3.frames_per_batch, device=cfg.device)
+    """The TD3 collector and an iterator over it that lives across iterations (``td3.fast``:
+    :class:`~torchrl_esrl.collectors.td3_collector.GymTD3Collector`, else TorchRL's ``Collector``)."""
+    collector = make_td3_collector(env, td3, cfg.td3.frames_per_batch, fast=cfg.td3.fast, device=cfg.device)
     if isinstance(td3.exploration_policy, RandomWarmup):
         td3.exploration_policy.reset()  # undo the Collector's probing call: the warm-up starts at frame 0
     return collector, iter(collector)

@@ -40,6 +40,7 @@ class TD3Config:
     critic_activation: str = MISSING
     fast: bool = MISSING
     random_frames: int = MISSING
+    num_threads: Optional[int] = MISSING
 
 
 @dataclass
