@@ -12,20 +12,16 @@ Goal: gym_collector_write <= 0.3 ms per frame. Usage: ``python -m benchmarks.td3
 from __future__ import annotations
 
 import argparse
-import sys
-from pathlib import Path
 
-if __package__ in (None, ""):
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from benchmarks.common import interleaved, save_report  # sets OMP_WAIT_POLICY, first
 
-from benchmarks.common import interleaved, save_report  # noqa: E402  (sets OMP_WAIT_POLICY)
+import torch
 
-import torch  # noqa: E402
-
-from benchmarks.iteration import paper_config  # noqa: E402
-from torchrl_esrl.collectors.td3_collector import make_td3_collector  # noqa: E402
-from torchrl_esrl.envs import quiet_logs  # noqa: E402
-from torchrl_esrl.run.factories import make_actor_critic, make_multibuffer, make_td3, make_train_env, seed_everything  # noqa: E402
+from benchmarks.iteration import paper_config
+from torchrl_esrl.collectors.td3_collector import make_td3_collector
+from torchrl_esrl.envs import quiet_logs
+from torchrl_esrl.run.determinism import seed_everything
+from torchrl_esrl.run.factories import make_actor_critic, make_multibuffer, make_td3, make_train_env
 
 
 def run(repeats: int = 7, calls: int = 200, capacity: int = 1_000_000) -> dict:

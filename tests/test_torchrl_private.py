@@ -92,14 +92,14 @@ def test_tensor_storage_data_is_the_storage_itself():
 def test_td3_loss_helpers(td3_loss):
     data = batch()
     assert torchrl_private.loss_priority_weight(td3_loss, data) is None  # no priorities in the batch
-    params = torchrl_private.loss_detached_qvalue_params(td3_loss)
+    params = torchrl_private.detached_qvalue_params(td3_loss)
     leaves = list(params.values(True, True))
     assert leaves and not any(p.requires_grad for p in leaves)
     value = torch.randn(8)
     assert torch.allclose(torchrl_private.reduce_loss(td3_loss, value, data, None), value.mean())  # reduction "mean"
 
 
-def test_soft_update_pairs_give_softupdate_step(td3_loss):
+def test_soft_update_tensors_give_softupdate_step(td3_loss):
     import copy
 
     loss_a, loss_b = td3_loss, copy.deepcopy(td3_loss)
@@ -109,7 +109,7 @@ def test_soft_update_pairs_give_softupdate_step(td3_loss):
             for p in loss.parameters():
                 p.add_(0.5)
     a.step()
-    sources, targets = torchrl_private.soft_update_pairs(b)
+    sources, targets = torchrl_private.soft_update_tensors(b)
     assert len(sources) == len(targets) > 0
     for source, target in zip(sources, targets):
         target.lerp_(source, 1 - b.eps)
@@ -121,16 +121,15 @@ def test_soft_update_pairs_give_softupdate_step(td3_loss):
 def test_collector_accessors(collector):
     carrier = torchrl_private.collector_carrier(collector)
     assert "observation" in carrier.keys() and ("collector", "traj_ids") in carrier.keys(True)
-    frames, iteration = torchrl_private.collector_counters(collector)
     state = collector.state_dict()
-    assert (frames, iteration) == (state["frames"], state["iter"]) and frames >= 10
-    torchrl_private.set_collector_counters(collector, frames + 5, iteration + 1)
-    assert (collector.state_dict()["frames"], collector.state_dict()["iter"]) == (frames + 5, iteration + 1)
+    assert state["frames"] >= 10
     replaced = carrier.clone()
     replaced["observation"] = torch.full_like(replaced["observation"], 3.0)
-    torchrl_private.set_collector_carrier(collector, replaced)
+    torchrl_private.restore_collector(collector, state["frames"] + 5, state["iter"] + 1, replaced, state["traj_pool"])
+    restored = collector.state_dict()
+    assert (restored["frames"], restored["iter"]) == (state["frames"] + 5, state["iter"] + 1)
     assert torchrl_private.collector_carrier(collector) is replaced
-    assert torchrl_private.collector_traj_pool(collector).state_dict() == state["traj_pool"]
+    assert restored["traj_pool"] == state["traj_pool"]
 
 
 def test_gym_env_of_unwraps_transformed_envs(env):

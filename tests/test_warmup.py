@@ -1,5 +1,6 @@
 """Fujimoto's uniform-random warm-up (td3.random_frames) as a policy module, through a real
 TorchRL collector, and its exact resumption from a checkpoint."""
+import pytest
 import torch
 from torchrl.checkpoint import Checkpoint
 
@@ -21,8 +22,9 @@ def make_td3_with_warmup(frames: int, seed: int = 7):
     return env, td3
 
 
-def collect_actions(env, td3, batches: int, restore_from=None) -> torch.Tensor:
-    collector, td3_batches = make_td3_batches(OmegaConf.create({"device": "cpu", "td3": {"frames_per_batch": 10}}), env, td3)  # the recipes' factory
+def collect_actions(env, td3, batches: int, restore_from=None, fast: bool = True) -> torch.Tensor:
+    config = OmegaConf.create({"device": "cpu", "td3": {"frames_per_batch": 10, "fast": fast}})
+    collector, td3_batches = make_td3_batches(config, env, td3)  # the recipes' factory
     if restore_from is not None:  # as the recipes do: components built, then the checkpoint loaded
         Checkpoint(exploration=td3.exploration_policy).load(restore_from)
     actions = [next(td3_batches)["action"].reshape(-1, 2) for _ in range(batches)]
@@ -30,9 +32,10 @@ def collect_actions(env, td3, batches: int, restore_from=None) -> torch.Tensor:
     return torch.cat(actions)
 
 
-def test_first_frames_are_uniform_from_the_seeded_generator_then_the_noisy_actor():
+@pytest.mark.parametrize("fast", [False, True], ids=["torchrl_collector", "gym_td3_collector"])
+def test_first_frames_are_uniform_from_the_seeded_generator_then_the_noisy_actor(fast):
     env, td3 = make_td3_with_warmup(frames=30)
-    actions = collect_actions(env, td3, batches=5)
+    actions = collect_actions(env, td3, batches=5, fast=fast)
     generator = torch.Generator().manual_seed(7)
     low, high = env.action_spec.space.low, env.action_spec.space.high
     expected = torch.stack([low + (high - low) * torch.rand(2, generator=generator) for _ in range(30)])
@@ -42,14 +45,25 @@ def test_first_frames_are_uniform_from_the_seeded_generator_then_the_noisy_actor
     assert not torch.allclose(actions[30:40], torch.stack([low + (high - low) * torch.rand(2, generator=generator) for _ in range(10)]))
 
 
-def test_warmup_resumes_exactly_from_a_checkpoint(tmp_path):
+@pytest.mark.parametrize("fast", [False, True], ids=["torchrl_collector", "gym_td3_collector"])
+def test_warmup_resumes_exactly_from_a_checkpoint(tmp_path, fast):
     env, td3 = make_td3_with_warmup(frames=40)
-    whole = collect_actions(env, td3, batches=4)
+    whole = collect_actions(env, td3, batches=4, fast=fast)
 
     env, td3 = make_td3_with_warmup(frames=40)
-    first = collect_actions(env, td3, batches=2)
+    first = collect_actions(env, td3, batches=2, fast=fast)
     Checkpoint(exploration=td3.exploration_policy).save(tmp_path / "ckpt")
     env, td3 = make_td3_with_warmup(frames=40, seed=123)  # a different generator, overwritten by the load
-    second = collect_actions(env, td3, batches=2, restore_from=tmp_path / "ckpt")
+    second = collect_actions(env, td3, batches=2, restore_from=tmp_path / "ckpt", fast=fast)
     assert td3.exploration_policy.frames_acted == 40
     torch.testing.assert_close(torch.cat([first, second]), whole)
+
+
+def test_fast_collector_acts_as_the_torchrl_collector_through_and_after_the_warmup():
+    """The direct stepping path honours the warm-up exactly as TorchRL's Collector does."""
+    runs = []
+    for fast in (False, True):
+        env, td3 = make_td3_with_warmup(frames=30)
+        torch.manual_seed(1)  # the exploration noise after the warm-up draws from torch's global stream
+        runs.append(collect_actions(env, td3, batches=5, fast=fast))
+    torch.testing.assert_close(runs[1], runs[0])

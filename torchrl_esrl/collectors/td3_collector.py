@@ -111,6 +111,8 @@ class GymTD3Collector:
                         x = activation(x)
                 action = squash(tanh, x, tanh.action_low, tanh.action_high)
                 action = torch.clamp(action + torch.normal(mean=mean, std=std) * noise.sigma, self.action_low, self.action_high)
+                if self.warmup is not None:
+                    self.warmup.frames_acted += 1  # counted as RandomWarmup.forward counts them
             actions[i] = action[0]
             observation, reward, term, trunc, _ = gym_env.step(action[0].numpy())
             next_observations[i] = observation
