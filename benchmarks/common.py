@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import os
 
-if not os.environ.get("BENCHMARKS_OMP_DEFAULT"):  # set by a benchmark's --omp-default: libgomp's own policy
+if os.environ.get("BENCHMARKS_OMP_PASSIVE"):  # set by a benchmark's --omp-passive; default: libgomp's own policy, as the recipes run
     os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # before torch loads (see docs/performance.md)
 import platform
 import statistics

@@ -23,7 +23,7 @@ import argparse
 import json
 import os
 
-if not os.environ.get("BENCHMARKS_OMP_DEFAULT"):  # 1: libgomp's own wait policy (as the recipes run)
+if os.environ.get("BENCHMARKS_OMP_PASSIVE"):  # 1: OMP_WAIT_POLICY=PASSIVE; default: libgomp's own policy, as the recipes run
     os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 import platform
 import sys

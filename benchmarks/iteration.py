@@ -58,10 +58,12 @@ def paper_config(env: str = "halfcheetah", capacity: int | None = None):
 class Setup:
     """One configuration's components, built with the recipe's factories."""
 
-    def __init__(self, env: str, capacity: int | None, reference: bool):
+    def __init__(self, env: str, capacity: int | None, reference: bool, td3_threads: int | None = None):
         cfg = paper_config(env, capacity)
         if reference:
             cfg.td3.fast, cfg.td3.num_threads = False, None
+        elif td3_threads is not None:  # the tuned configuration with another thread count for the TD3 phase
+            cfg.td3.num_threads = td3_threads
         seed_everything(0)
         self.cfg = cfg
         train_env = make_train_env(cfg)
@@ -166,11 +168,11 @@ class Setup:
 
 
 def run(env: str = "halfcheetah", frames: int = 2000, generations: int = 2, capacity: int | None = None,
-        compare: bool = False, rounds: int = 3) -> dict:
+        compare: bool = False, rounds: int = 3, td3_threads: int | None = None) -> dict:
     """Each part measured in ``rounds`` rounds (medians); with ``compare``, the reference
     configuration and the tuned one take turns within every round."""
     quiet_logs()
-    setups = ([Setup(env, capacity, reference=True)] if compare else []) + [Setup(env, capacity, reference=False)]
+    setups = ([Setup(env, capacity, reference=True)] if compare else []) + [Setup(env, capacity, reference=False, td3_threads=td3_threads)]
     for _ in range(rounds):
         for s in setups:
             s.env_steps(max(1, frames // rounds))
@@ -201,10 +203,11 @@ def main(argv=None) -> dict:
     parser.add_argument("--generations", type=int, default=None)
     parser.add_argument("--compare", action="store_true", help="also time the reference configuration, interleaved, same process")
     parser.add_argument("--rounds", type=int, default=3, help="rounds per part (medians reported)")
+    parser.add_argument("--td3-threads", type=int, default=None, help="td3.num_threads of the tuned configuration (default: conf/config.yaml's)")
     parser.add_argument("--out", default="benchmarks/results/iteration.json")
     args = parser.parse_args(argv)
     frames, generations = args.frames or (500 if args.quick else 2000), args.generations or (1 if args.quick else 2)
-    report = run(args.env, frames, generations, compare=args.compare, rounds=args.rounds)
+    report = run(args.env, frames, generations, compare=args.compare, rounds=args.rounds, td3_threads=args.td3_threads)
     reference = report.get("reference")
     for name, p in report["parts"].items():
         ratio = f"  {reference['parts'][name]['s_per'] / p['s_per']:5.2f}x reference" if reference else ""

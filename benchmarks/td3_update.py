@@ -13,15 +13,15 @@ method. Methods, interleaved in one run:
   torchrl_fast  TD3() default: FusedTD3Loss (stacked twin critics, Q1-only actor loss) +
                 ForeachSoftUpdate + fused Adam, 1 thread
   torchrl_fast_2threads  the same on 2 threads (the TD3 phase's ``td3.num_threads: 2``, as the
-                recipes run it under libgomp's default wait policy: ``--omp-default``)
+                recipes run it)
 
-Each method sets its thread count before every call. By default the process runs under
-``OMP_WAIT_POLICY=PASSIVE`` (benchmarks/common.py); ``--omp-default`` runs it under libgomp's own
-(spinning) policy, as the recipes do: the wait policy is read once, when torch loads, so the two
-are separate processes.
+Each method sets its thread count before every call. The process runs under libgomp's own
+(spinning) wait policy, as the recipes do; ``--omp-passive`` runs it under
+``OMP_WAIT_POLICY=PASSIVE``: the wait policy is read once, when torch loads, so the two are
+separate processes.
 
-Goal: the better torchrl_fast thread count >= 1.2x the better plain one (``--omp-default``).
-Usage: ``python -m benchmarks.td3_update [--quick] [--omp-default] [--out PATH]``.
+Goal: the better torchrl_fast thread count >= 1.2x the better plain one.
+Usage: ``python -m benchmarks.td3_update [--quick] [--omp-passive] [--out PATH]``.
 """
 from __future__ import annotations
 
@@ -30,8 +30,8 @@ import copy
 import os
 import sys
 
-if "--omp-default" in sys.argv:  # before torch loads
-    os.environ["BENCHMARKS_OMP_DEFAULT"] = "1"
+if "--omp-passive" in sys.argv:  # before torch loads
+    os.environ["BENCHMARKS_OMP_PASSIVE"] = "1"
 
 from benchmarks.common import SHAPES, fill, interleaved, save_report  # sets OMP_WAIT_POLICY, first
 
@@ -138,7 +138,7 @@ def main(argv=None) -> dict:
     parser.add_argument("--quick", action="store_true", help="100k-item buffers, fewer repetitions")
     parser.add_argument("--repeats", type=int, default=None)
     parser.add_argument("--calls", type=int, default=None)
-    parser.add_argument("--omp-default", action="store_true", help="libgomp's default wait policy instead of PASSIVE (read at import)")
+    parser.add_argument("--omp-passive", action="store_true", help="OMP_WAIT_POLICY=PASSIVE instead of libgomp's default (read at import)")
     parser.add_argument("--out", default="benchmarks/results/td3_update.json")
     args = parser.parse_args(argv)
     report = run(100_000 if args.quick else 1_000_000, repeats=args.repeats or (3 if args.quick else 9), calls=args.calls or (20 if args.quick else 50))

@@ -11,22 +11,14 @@ the same hydra.run.dir, or resume=<run dir>, continues from the last one
 """
 from __future__ import annotations
 
-import os
+import torch
+from omegaconf import DictConfig
 
-# Before torch loads: libgomp's default spin-wait keeps torch's OpenMP threads busy after each
-# forward and steals the cores MuJoCo's batch threads need next (ES evaluation with the
-# mujoco_batch backend ran its physics 2x slower; docs/performance.md). Read only at torch's
-# import, hence here; setdefault so a caller's choice wins.
-os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
-
-import torch  # noqa: E402
-from omegaconf import DictConfig  # noqa: E402
-
-from torchrl_esrl.collectors.td3_collector import TD3EnvState  # noqa: E402
-from torchrl_esrl.errors import check_finite  # noqa: E402
-from torchrl_esrl.algorithm.td3_phase import td3_phase  # noqa: E402
-from torchrl_esrl.modules.networks import flat_parameters  # noqa: E402
-from torchrl_esrl.run.factories import (  # noqa: E402
+from torchrl_esrl.collectors.td3_collector import TD3EnvState
+from torchrl_esrl.errors import check_finite
+from torchrl_esrl.algorithm.td3_phase import td3_phase
+from torchrl_esrl.modules.networks import flat_parameters
+from torchrl_esrl.run.factories import (
     make_actor_critic,
     make_es,
     make_es_collector,
@@ -38,7 +30,7 @@ from torchrl_esrl.run.factories import (  # noqa: E402
     make_threshold,
     make_train_env,
 )
-from torchrl_esrl.run.lifecycle import Run, recipe_main  # noqa: E402
+from torchrl_esrl.run.lifecycle import Run, recipe_main
 
 
 def train(cfg: DictConfig, run: Run) -> dict:

@@ -3,8 +3,6 @@ import subprocess
 import sys
 from pathlib import Path
 
-# Set before torch is imported: idle OpenMP threads otherwise spin and slow MuJoCo (docs/performance.md).
-os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 # Before anything imports Ray (tests/test_ray_backend.py): loopback-only node addresses, no usage
 # reporting. Ray reads these at import; set later, its nodes advertise the host address and hang.
 os.environ["RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER"] = "0"
