@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # The experiment set behind docs/results.md, "Does the multi-buffer help?": experiment=multibuffer
-# (conf/experiment/multibuffer.yaml states the budget and its assumed cost), one torch thread per run,
+# (conf/experiment/multibuffer.yaml states the budget and its assumed cost), one torch thread per run
+# (OMP_NUM_THREADS=1 and td3.num_threads=1: two runs never oversubscribe the two cores),
 # parallel_jobs runs at a time (default 2: one per core of a 2-core machine).
 #   HalfCheetah-v5 and Walker2d-v5, seeds 0-4 of: ES-TD3Buffers 0.5:0.2:0.3; one shared buffer
 #   (buffer.mode=shared); soft overwrite (overwrite.mode=soft, mix 0.5); TD3 (Fujimoto's uniform warm-up,
@@ -55,7 +56,7 @@ run_one() {
     start=$(date +%s)
     # shellcheck disable=SC2086  # EXTRA: several overrides, split on purpose
     OMP_NUM_THREADS=1 "$PYTHON" "recipes/$recipe" env="$env" experiment=multibuffer seed="$seed" "$@" $EXTRA \
-      logger.progress=false hydra.run.dir="$dir" > "$dir.log" 2>&1
+      td3.num_threads=1 logger.progress=false hydra.run.dir="$dir" > "$dir.log" 2>&1
     status=$?
     echo "$env $name: exit $status after $(( $(date +%s) - start )) s" | tee -a "$WORK/timings.txt"
   fi
