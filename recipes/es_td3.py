@@ -42,7 +42,7 @@ def train(cfg: DictConfig, run: Run) -> dict:
     td3 = make_td3(cfg, actor, critic, env.action_spec)
     collector, td3_batches = make_td3_batches(cfg, env, td3)
     es, es_collector = make_es(cfg, actor), make_es_collector(cfg, actor)
-    es_phase = make_es_phase(cfg, es, es_collector, make_multibuffer(cfg), make_threshold(cfg))
+    es_phase = make_es_phase(cfg, es, es_collector, make_multibuffer(cfg), make_threshold(cfg), on_generation=run.on_es_generation)
     buffer, threshold = es_phase.buffer, es_phase.threshold  # lock-guarded when ES runs in the background
     overwrite = make_overwrite_rule(cfg)
     run.resume(actor, td3=td3, exploration=td3.exploration_policy, td3_env=TD3EnvState(collector), buffer=buffer, es=es, es_collector=es_collector, threshold=threshold, overwrite=overwrite)
@@ -55,7 +55,7 @@ def train(cfg: DictConfig, run: Run) -> dict:
             cfg.td3.frames_per_iteration, td3_batches, td3, buffer,
             on_episode=lambda r: threshold.observe(check_finite("TD3 episode return", r)),
             updates_per_frame=cfg.td3.updates_per_frame,
-            on_batch=run.checkpoint_mid_phase if es_phase.inline else None,  # async: ES state is in flux mid-phase
+            on_batch=run.on_td3_batch if es_phase.inline else None,  # async: ES state is in flux mid-phase
             progress=run.progress.td3_phase,
         )
         td3_return = check_finite("TD3 evaluation return", run.evaluate(flat_parameters(actor)))

@@ -29,7 +29,7 @@ def train(cfg: DictConfig, run: Run) -> dict:
     episodes = run.progress.counters.setdefault("td3_train_episodes", 0)
 
     for iteration in run.iterations("TD3"):
-        stats = td3_phase(cfg.td3.frames_per_iteration, td3_batches, td3, buffer, updates_per_frame=cfg.td3.updates_per_frame, on_batch=run.checkpoint_mid_phase, progress=run.progress.td3_phase)
+        stats = td3_phase(cfg.td3.frames_per_iteration, td3_batches, td3, buffer, updates_per_frame=cfg.td3.updates_per_frame, on_batch=run.on_td3_batch, progress=run.progress.td3_phase)
         episodes = run.progress.counters["td3_train_episodes"] = episodes + stats["episodes"]
         run.log(
             iteration,

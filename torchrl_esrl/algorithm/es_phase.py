@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import functools
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import torch
@@ -17,15 +18,17 @@ def es_phase(
     threshold,
     generations: int,
     shared_buffer: bool = False,
+    on_generation: Callable[[int], None] | None = None,
 ) -> list[torch.Tensor]:
     """Run ``generations`` generations (ask, evaluate one episode each, route, tell).
 
     Each offspring's trajectory goes to ``good`` when its return reaches the threshold, else to
     ``bad`` (offspring by offspring, as Algorithm 1). ``shared_buffer`` is the ERL-style ablation:
-    every transition to one buffer (``noisy``), no routing. Returns each generation's returns.
+    every transition to one buffer (``noisy``), no routing. ``on_generation`` sees the index of
+    each finished generation (progress display). Returns each generation's returns.
     """
     returns = []
-    for _ in range(generations):
+    for index in range(generations):
         population = es.ask()
         generation = es_collector.evaluate(population)
         good = threshold.route(generation.returns)
@@ -37,6 +40,8 @@ def es_phase(
         es.tell(generation.returns)  # raises on a non-finite return
         check_finite("ES mean", es.mean)
         returns.append(generation.returns)
+        if on_generation is not None:
+            on_generation(index)
     return returns
 
 
@@ -61,13 +66,14 @@ class ESPhase:
     background mode (:mod:`~torchrl_esrl.algorithm.background_es`).
     """
 
-    def __init__(self, es, es_collector, buffer, threshold, generations: int, shared_buffer: bool, background: bool):
+    def __init__(self, es, es_collector, buffer, threshold, generations: int, shared_buffer: bool, background: bool, on_generation: Callable[[int], None] | None = None):
         self.background = None
         if background:
             buffer, threshold = BackgroundES.guard(buffer, threshold)
-            self.background = BackgroundES(functools.partial(es_phase, es, es_collector, buffer, threshold, int(generations), bool(shared_buffer)))
-        self.es, self.es_collector, self.buffer, self.threshold = es, es_collector, buffer, threshold
-        self.generations, self.shared_buffer = int(generations), bool(shared_buffer)
+        run = functools.partial(es_phase, es, es_collector, buffer, threshold, int(generations), bool(shared_buffer), on_generation)
+        if background:
+            self.background = BackgroundES(run)
+        self.es, self.es_collector, self.buffer, self.threshold, self.run = es, es_collector, buffer, threshold, run
 
     @property
     def inline(self) -> bool:
@@ -81,7 +87,7 @@ class ESPhase:
     def finish(self) -> GenerationReturns:
         if self.background is not None:
             return GenerationReturns(self.background.join())
-        return GenerationReturns(es_phase(self.es, self.es_collector, self.buffer, self.threshold, self.generations, self.shared_buffer))
+        return GenerationReturns(self.run())
 
     def close(self) -> None:
         if self.background is not None:

@@ -63,6 +63,7 @@ class RunHarness:
         self.evaluator: ESCollector | None = None
         self.initial_return: float | None = None  # set by attach_actor
         self.bar = None  # the progress bar, set by Run.iterations
+        self.returns_text = ""  # the last evaluation, shown on the bar
         self.last_row: dict = {}
 
     @property
@@ -105,9 +106,15 @@ class RunHarness:
         }
         self.log_.log(row)
         self.last_row = row
-        if self.bar is not None:
-            self.bar.set_postfix_str(f"return {eval_return:.1f} (initial {self.initial_return:.1f})")
+        learners = "".join(f", {name} {row[key]:.1f}" for name, key in (("TD3 actor", "td3_eval_return"), ("ES mean", "es_eval_return")) if key in row)
+        self.returns_text = f"return {eval_return:.1f}{learners} (initial {self.initial_return:.1f})"
+        self.show_phase("evaluated")
         return row
+
+    def show_phase(self, phase: str) -> None:
+        """The progress bar's text: the phase under way and the last evaluation's returns."""
+        if self.bar is not None:
+            self.bar.set_postfix_str(f"{phase}; {self.returns_text}" if self.returns_text else phase)
 
     def finish(self, returned: torch.Tensor, extra: Mapping | None = None, alias: str | None = None) -> dict:
         """Final evaluation of the returned policy; writes and returns ``summary.json``.

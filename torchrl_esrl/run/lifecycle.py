@@ -65,9 +65,17 @@ class Run(RunHarness):
             self.progress.finish_iteration()
             self.checkpoint.save()
 
-    def checkpoint_mid_phase(self, *_) -> None:
-        """``td3_phase``'s ``on_batch`` hook: a checkpoint every ``checkpoint.every_frames`` TD3 frames."""
+    def on_td3_batch(self, frames: int, *_) -> None:
+        """``td3_phase``'s ``on_batch`` hook: a checkpoint every ``checkpoint.every_frames`` TD3 frames,
+        and the phase on the progress bar (every 5% of the phase's frames)."""
         self.checkpoint.maybe_save_mid_phase()
+        collected, total = self.progress.td3_phase.collected, int(self.cfg.td3.frames_per_iteration)
+        if collected % max(1, total // 20) < frames:
+            self.show_phase(f"TD3 {collected}/{total} frames")
+
+    def on_es_generation(self, index: int) -> None:
+        """``es_phase``'s ``on_generation`` hook: the phase on the progress bar."""
+        self.show_phase(f"ES {index + 1}/{self.cfg.es.generations_per_iteration} generations")
 
 
 def recipe_main(train: Callable[[DictConfig, Run], dict], config_name: str, algorithm: str | Callable[[DictConfig], str]) -> Callable[[], None]:
