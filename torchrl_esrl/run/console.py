@@ -13,8 +13,6 @@ from omegaconf import DictConfig, OmegaConf
 RETURNED = {
     "es_td3_buffers": "ES mean",
     "es_td3_shared": "ES mean",
-    "es_td3_buffers_soft": "ES mean",
-    "es_td3_shared_soft": "ES mean",
     "td3": "TD3 actor",
     "es": "ES mean",
     "cem_rl": "CEM mean",
@@ -32,7 +30,7 @@ def final_lines(summary: dict, run_dir: str | Path) -> str:
     initial policy, whether the ES mean was overwritten, and where the files and the plot are."""
     run_dir = Path(run_dir)
     episodes = summary["final_episodes"]
-    returned = RETURNED.get(summary["algorithm"], "returned policy")
+    returned = RETURNED.get(summary["algorithm"].removesuffix("_soft"), "returned policy")  # soft overwrite: the same policy
     rows = [(f"returned policy ({returned})", summary["final_return"])]
     if "final_td3_actor_return" in summary:
         rows.append(("TD3 actor", summary["final_td3_actor_return"]))
