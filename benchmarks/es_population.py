@@ -4,8 +4,8 @@
 one episode each (up to 1000 steps), measured in one run for:
 
   batched    the ``mujoco_batch`` backend (mujoco.batch.Batch + one batched forward per step;
-             one half's physics overlaps the other half's forward)
-  batched_sequential  the same, physics and forward one after the other (``overlap=False``)
+             the forward over two halves on two threads)
+  batched_sequential  the same, the forward on one thread (``threaded_forward=False``)
   raw        the same mujoco.batch stepping with fixed controls: no policy, no rewards (the ceiling)
   serial     one gymnasium env, offspring after offspring, torch forward per step with the
              offspring's weights loaded into an actor
@@ -122,7 +122,7 @@ def run(env_id: str, members: int, steps: int, nthread: int, sweep: bool, repeat
     policy = PopulationActor(actor)
     seeds = list(range(1000, 1000 + members))
     batched_backend = MujocoBatchBackend(env_id, policy, max_episode_steps=steps, nthread=nthread)
-    sequential_backend = MujocoBatchBackend(env_id, policy, max_episode_steps=steps, nthread=nthread, overlap=False)
+    sequential_backend = MujocoBatchBackend(env_id, policy, max_episode_steps=steps, nthread=nthread, threaded_forward=False)
     batched_backend.rollout(params[:2], seeds[:2])  # warm-up (imports, allocator)
     sequential_backend.rollout(params[:2], seeds[:2])
     lockstep_backend = GymBackend(env_id, policy, max_episode_steps=steps)

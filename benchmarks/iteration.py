@@ -17,7 +17,7 @@ Per iteration: 100k frames x (env step + update) + 50 generations + 2 evaluation
 Each part is timed in rounds (medians). ``--compare`` also times, in the same process and
 taking turns with the tuned configuration within every round, the reference configuration:
 ``td3.fast=false`` (stock ``TD3Loss`` + ``SoftUpdate`` + default Adam, TorchRL ``Collector``),
-``td3.num_threads=null`` (the process's threads), the ES loop without overlap; each part's ratio
+``td3.num_threads=null`` (the process's threads), the ES forward on one thread; each part's ratio
 is reported.
 Usage: ``python -m benchmarks.iteration [--quick] [--compare] [--env halfcheetah] [--out PATH]``.
 """
@@ -72,8 +72,8 @@ class Setup:
         self.collector, self.batches = make_td3_batches(cfg, train_env, self.td3)
         self.buffer = make_multibuffer(cfg)
         self.es, self.es_collector, self.threshold = make_es(cfg, self.actor), make_es_collector(cfg, self.actor), make_threshold(cfg)
-        if reference and hasattr(self.es_collector.backend, "overlap"):
-            self.es_collector.backend.overlap = False
+        if reference and hasattr(self.es_collector.backend, "threaded_forward"):
+            self.es_collector.backend.threaded_forward = False
         self.obs_dim, self.act_dim = train_env.observation_spec["observation"].shape[-1], train_env.action_spec.shape[-1]
         self.seconds: dict[str, list[float]] = {}  # part -> seconds per unit, one entry per round
         self.cpu_seconds: dict[str, list[float]] = {}  # the same in process CPU time (all threads)
@@ -164,7 +164,7 @@ class Setup:
         return {"cpu_iteration_s": cpu_iteration_s, "cpu_run_h": cpu_iteration_s * cfg.iterations / 3600,"env": cfg.env.id, "iterations": cfg.iterations, "parts": parts, "iteration_s": iteration_s, "run_s": run_s,
                 "run_h": run_s / 3600, "goal": "20 iterations <= 4 h", "met": run_s <= 4 * 3600,
                 "config": {"td3.fast": cfg.td3.fast, "td3.num_threads": cfg.td3.num_threads,
-                           "es_overlap": getattr(self.es_collector.backend, "overlap", None)}}
+                           "es_threaded_forward": getattr(self.es_collector.backend, "threaded_forward", None)}}
 
 
 def run(env: str = "halfcheetah", frames: int = 2000, generations: int = 2, capacity: int | None = None,

@@ -30,14 +30,14 @@ def population(env_id: str, members: int, sigma: float, seed: int = 0):
     return PopulationActor(actor), params.contiguous()
 
 
-@pytest.mark.parametrize("overlap", [True, False])
+@pytest.mark.parametrize("threaded_forward", [True, False])
 @pytest.mark.parametrize("env_id", ENV_IDS)
-def test_same_episodes_as_gym_backend(env_id, overlap):
-    steps, members = 120, 16 if overlap else 6  # the overlapped loop starts at 16 members
+def test_same_episodes_as_gym_backend(env_id, threaded_forward):
+    steps, members = 120, 16 if threaded_forward else 6  # the threaded forward starts at 16 members
     policy, params = population(env_id, members, sigma=0.3)
     seeds = [11 * p + 3 for p in range(members)]
     reference = GymBackend(env_id, policy, max_episode_steps=steps).rollout(params, seeds)
-    batched = MujocoBatchBackend(env_id, policy, max_episode_steps=steps, overlap=overlap).rollout(params, seeds)
+    batched = MujocoBatchBackend(env_id, policy, max_episode_steps=steps, threaded_forward=threaded_forward).rollout(params, seeds)
 
     assert torch.equal(batched.lengths, reference.lengths)
     torch.testing.assert_close(batched.returns, reference.returns, rtol=1e-6, atol=1e-6)
@@ -75,7 +75,7 @@ def test_fixed_actions_match_a_raw_gymnasium_loop(env_id):
     actions = rng.uniform(env.action_space.low, env.action_space.high, (members, steps, env.action_space.shape[0]))
     actions = actions.astype(np.float32)
     seeds = [5, 6, 7]
-    backend = MujocoBatchBackend(env_id, ScriptedActions(actions), max_episode_steps=steps, overlap=False)  # one policy call per step
+    backend = MujocoBatchBackend(env_id, ScriptedActions(actions), max_episode_steps=steps, threaded_forward=False)  # one policy call per step
     generation = backend.rollout(torch.zeros(members, 1), seeds)
     traj_ids = generation.transitions.get(("collector", "traj_ids"))
 
@@ -127,21 +127,21 @@ def test_early_terminated_members_contribute_only_their_steps(env_id):
 
 
 @pytest.mark.parametrize("env_id", ["HalfCheetah-v5", "Walker2d-v5", "Hopper-v5"])
-def test_overlapped_halves_give_the_sequential_episodes_bit_for_bit(env_id):
-    """The overlapped loop (physics of one half during the other half's forward) produces exactly
-    the sequential loop's generation, odd population and early terminations included."""
-    steps, members = 150, 17  # odd, and above the overlap's minimum population
+def test_threaded_forward_gives_the_one_thread_episodes_bit_for_bit(env_id):
+    """The forward over two halves on two threads produces exactly the one-thread loop's
+    generation, odd population and early terminations included."""
+    steps, members = 150, 17  # odd, and above the threaded forward's minimum population
     policy, params = population(env_id, members, sigma=0.3, seed=2)
     seeds = list(range(40, 40 + members))
-    sequential = MujocoBatchBackend(env_id, policy, max_episode_steps=steps, overlap=False).rollout(params, seeds)
-    overlapped = MujocoBatchBackend(env_id, policy, max_episode_steps=steps, overlap=True).rollout(params, seeds)
-    assert torch.equal(overlapped.lengths, sequential.lengths)
-    assert torch.equal(overlapped.returns, sequential.returns)
+    sequential = MujocoBatchBackend(env_id, policy, max_episode_steps=steps, threaded_forward=False).rollout(params, seeds)
+    threaded = MujocoBatchBackend(env_id, policy, max_episode_steps=steps, threaded_forward=True).rollout(params, seeds)
+    assert torch.equal(threaded.lengths, sequential.lengths)
+    assert torch.equal(threaded.returns, sequential.returns)
     for key in KEYS:
-        assert torch.equal(overlapped.transitions.get(key), sequential.transitions.get(key)), key
+        assert torch.equal(threaded.transitions.get(key), sequential.transitions.get(key)), key
     if env_id != "HalfCheetah-v5":
         assert (sequential.lengths < steps).any()
-    assert MujocoBatchBackend(env_id, policy, overlap=True)._overlaps(members)
+    assert len(MujocoBatchBackend(env_id, policy)._forward_blocks(params)) == 2
 
 
 def test_registered_and_chosen_by_default():

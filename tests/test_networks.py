@@ -37,3 +37,16 @@ def test_population_actor_matches_each_member_loaded_into_the_actor():
         expected = member(TensorDict(observation=observations[p : p + 1], batch_size=[1]))["action"]
         torch.testing.assert_close(batched[p : p + 1], expected, rtol=1e-5, atol=1e-6)
     assert batched.abs().max() <= 2.0 and batched.abs().max() > 1.0
+
+
+def test_population_actor_gives_a_block_of_members_the_actions_of_the_whole_population():
+    # The overlapped ES rollout evaluates each half of the population on its own
+    # (torchrl_esrl/collectors/mujoco_batch.py): its members must get bit for bit the
+    # actions the forward over all P gives them.
+    actor = make_actor(17, make_env("halfcheetah").action_spec)
+    population = flat_parameters(actor)[None] + 0.005 * torch.randn(120, flat_parameters(actor).numel())
+    observations = torch.randn(120, 17)
+    policy = PopulationActor(actor)
+    whole = policy(population, observations)
+    for block in (slice(0, 60), slice(60, 120), slice(7, 8), slice(1, 120)):
+        assert torch.equal(policy(population[block], observations[block]), whole[block])

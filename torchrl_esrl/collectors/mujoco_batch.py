@@ -29,10 +29,9 @@ import mujoco.batch
 import numpy as np
 import torch
 
-from torchrl_esrl.envs import make_gym_env, resolve_env_id
 from torchrl_esrl.collectors.generation import Generation, transitions_from_arrays
+from torchrl_esrl.envs import make_gym_env, resolve_env_id
 from torchrl_esrl.modules.networks import PopulationActor
-from torchrl_esrl.threads import torch_threads
 
 _INTEGRATION_STATE = mujoco.mjtState.mjSTATE_INTEGRATION
 
@@ -100,12 +99,11 @@ class MujocoBatchBackend:
             rounding depends on the batch size (measured ~1e-6 differences), which chaotic tasks
             amplify into different episodes, so members would no longer get exactly the actions
             the reference ``"gym"`` backend (forward over all P) gives them.
-        overlap: split the population into two fixed halves and step one half's physics on
-            MuJoCo's threads (the GIL is released) while torch computes the other half's actions
-            (default). The forward over a contiguous half gives each member bit for bit the
-            actions of the forward over all P (tests/test_mujoco_batch.py), and every member's
-            physics and reward arithmetic is its own, so the episodes are those of the
-            sequential loop. Not used with Ant's contact forces (a scratch ``MjData`` per step).
+        threaded_forward: run the policy forward as two contiguous halves of the population on
+            two threads (numpy's einsum releases the GIL) from 16 members on (default). The
+            forward over a contiguous block gives each member bit for bit the actions of the
+            forward over all P (tests/test_networks.py), so the episodes are those of the
+            one-thread loop. The physics always runs on all ``nthread`` MuJoCo threads.
     """
 
     name = "mujoco_batch"
@@ -118,7 +116,7 @@ class MujocoBatchBackend:
         nthread: int | None = None,
         persistent: bool = False,
         compact_finished: bool = False,
-        overlap: bool = True,
+        threaded_forward: bool = True,
     ):
         self.env_id = resolve_env_id(env_id)
         if self.env_id not in TASKS:
@@ -140,8 +138,8 @@ class MujocoBatchBackend:
         self.nthread = int(nthread or os.cpu_count() or 1)
         self.persistent = bool(persistent or self.rules.contact_forces)
         self.compact_finished = bool(compact_finished)
-        self.overlap = bool(overlap)
-        self._physics_thread: ThreadPoolExecutor | None = None
+        self.threaded_forward = bool(threaded_forward)
+        self._forward_thread: ThreadPoolExecutor | None = None
         self.ctrl_cost_weight = np.float32(self.constants["_ctrl_cost_weight"])  # gymnasium multiplies a float32 sum
         self._batch: mujoco.batch.Batch | None = None
         self._scratch = mujoco.MjData(self.model) if self.rules.contact_forces else None
@@ -153,97 +151,29 @@ class MujocoBatchBackend:
         except Exception:  # noqa: BLE001 - unknown ids are simply not supported
             return False
 
-    def _overlaps(self, population: int) -> bool:
-        # Small populations (the 5-episode evaluations) gain nothing: two thread hand-offs per
-        # step cost more than a few members' forward.
-        return self.overlap and population >= 16 and not self.compact_finished and not self.rules.contact_forces
+    def _forward_blocks(self, params: torch.Tensor) -> list[tuple[slice, list]]:
+        """The contiguous blocks the forward runs on, with their parameter views."""
+        population = params.shape[0]
+        # Small populations (the 5-episode evaluations) gain nothing from a thread hand-off.
+        if not self.threaded_forward or population < 16:
+            return [(slice(0, population), self.policy.split(params))]
+        half = population // 2
+        return [(block, self.policy.split(params[block])) for block in (slice(0, half), slice(half, population))]
+
+    def _forward(self, params: torch.Tensor, observations: torch.Tensor, blocks) -> np.ndarray:
+        """Actions of all members: the second block's forward on a worker thread during the first's."""
+        if len(blocks) == 1:
+            return self.policy(params, observations, blocks[0][1]).numpy()
+        if self._forward_thread is None:
+            self._forward_thread = ThreadPoolExecutor(max_workers=1, thread_name_prefix="population-forward")
+        (first, first_layers), (second, second_layers) = blocks
+        pending = self._forward_thread.submit(self.policy, params[second], observations[second], second_layers)
+        return np.concatenate([self.policy(params[first], observations[first], first_layers).numpy(), pending.result().numpy()])
 
     def _get_batch(self, population: int) -> mujoco.batch.Batch:
         if self._batch is None or self._batch.nsim != population:
-            # Overlapped: torch keeps one core busy with the other half's forward.
-            nthread = max(1, self.nthread - 1) if self._overlaps(population) else self.nthread
-            self._batch = mujoco.batch.Batch(self.model, population, min(nthread, population), self.persistent)
+            self._batch = mujoco.batch.Batch(self.model, population, min(self.nthread, population), self.persistent)
         return self._batch
-
-    def _observe(self, batch, rows: np.ndarray, t: int, obs_traj, actions, rewards, terminated, truncated, lengths, x_before) -> np.ndarray:
-        """After the physics step of members ``rows`` at step ``t``: their next observations,
-        rewards and flags (gymnasium v5's formulas); returns the members still live."""
-        rules, c = self.rules, self.constants
-        qpos, qvel = batch.bind("qpos")[rows], batch.bind("qvel")[rows]
-        x_after = batch.bind("xpos")[rows, rules.x_from_body, 0] if rules.x_from_body is not None else qpos[:, 0]
-        forward_reward = c["_forward_reward_weight"] * ((x_after - x_before[rows]) / self.dt)
-        x_before[rows] = x_after
-        # float32 like gymnasium's np.sum(np.square(action)) on the float32 action
-        ctrl_cost = self.ctrl_cost_weight * np.square(actions[rows, t]).sum(axis=1)
-        n_pos, nv = self.model.nq - rules.skipped_qpos, self.model.nv
-        observation = np.empty((len(rows), self.observation_dim), dtype=np.float32)
-        observation[:, :n_pos] = qpos[:, rules.skipped_qpos :]
-        observation[:, n_pos : n_pos + nv] = qvel if rules.clip_qvel is None else np.clip(qvel, -rules.clip_qvel, rules.clip_qvel)
-        obs_traj[rows, t + 1] = observation
-        term = None
-        if rules.healthy is not None:
-            healthy = rules.healthy(qpos, qvel, c)
-            reward = forward_reward + healthy * c["_healthy_reward"]
-            term = ~healthy if c["_terminate_when_unhealthy"] else None
-        else:
-            reward = forward_reward
-        rewards[rows, t] = reward - ctrl_cost
-        lengths[rows] = t + 1
-        if t + 1 >= self.horizon:  # time limit (gymnasium's TimeLimit: truncated even when also terminated)
-            truncated[rows, t] = True
-        if term is not None and term.any():
-            terminated[rows, t] = term
-            return rows[~term]
-        return rows
-
-    def _overlapped_steps(self, batch, params, obs_traj, actions, rewards, terminated, truncated, lengths, x_before) -> None:
-        """The episode loop with one half's physics overlapping the other half's forward.
-
-        Per step t: [physics A(t) | forward B(t)], then [physics B(t) | observe A(t), forward
-        A(t+1)], then observe B(t). Each half's forward runs over all its members, finished
-        ones included, as the sequential loop's forward over all P does.
-        """
-        if self._physics_thread is None:
-            self._physics_thread = ThreadPoolExecutor(max_workers=1, thread_name_prefix="mujoco-batch")
-        population, half = params.shape[0], params.shape[0] // 2
-        halves = [slice(0, half), slice(half, population)]
-        offsets = [0, half]
-        layers = [self.policy.split(params[h]) for h in halves]
-        live = [np.arange(0, half), np.arange(half, population)]
-        ctrl = batch.bind("ctrl")
-        buffers = (obs_traj, actions, rewards, terminated, truncated, lengths, x_before)
-        frame_skip = self.frame_skip
-
-        def act(k: int, t: int) -> None:
-            action = self.policy(params[halves[k]], torch.from_numpy(obs_traj[halves[k], t]), layers[k]).numpy()
-            rows = live[k]
-            action = action if len(rows) == action.shape[0] else action[rows - offsets[k]]
-            actions[rows, t] = action
-            ctrl[rows] = action
-
-        def physics(k: int):
-            return self._physics_thread.submit(batch.step, ids=live[k], nstep=frame_skip)
-
-        self._overlapped_loop(act, physics, live, batch, buffers)
-
-    def _overlapped_loop(self, act, physics, live, batch, buffers) -> None:
-        act(0, 0)
-        for t in range(self.horizon):
-            stepping = physics(0) if len(live[0]) else None
-            if len(live[1]):
-                act(1, t)
-            if stepping is not None:
-                stepping.result()
-            stepping = physics(1) if len(live[1]) else None
-            if len(live[0]):
-                live[0] = self._observe(batch, live[0], t, *buffers)
-                if len(live[0]) and t + 1 < self.horizon:
-                    act(0, t + 1)
-            if stepping is not None:
-                stepping.result()
-                live[1] = self._observe(batch, live[1], t, *buffers)
-            if not len(live[0]) and not len(live[1]):
-                break
 
     def _reset(self, batch: mujoco.batch.Batch, seeds: Sequence[int], first_obs: np.ndarray, x_before: np.ndarray) -> None:
         data = self.reset_env.unwrapped.data
@@ -290,86 +220,80 @@ class MujocoBatchBackend:
         self._reset(batch, seeds, first_obs, x_before)
         obs_traj[:, 0] = first_obs
 
-        # One torch thread: the forward is memory-bound, and a second OpenMP thread left
-        # spinning after it (libgomp's default wait policy) would take MuJoCo's second core.
-        with torch_threads(1):
-            if self._overlaps(population):
-                self._overlapped_steps(batch, params, obs_traj, actions, rewards, terminated, truncated, lengths, x_before)
+        live = np.arange(population)
+        # Members whose parameters the forward runs on: all of them, or with compact_finished a
+        # group re-gathered (one copy of its rows) only when the live set has shrunk to 3/4 of it,
+        # so finished members cost a little wasted forward instead of one P x D copy each.
+        group, group_params = live, params
+        blocks = self._forward_blocks(group_params)
+        position_in_group = live  # row of each live member in group_params
+        skipped = rules.skipped_qpos
+        for t in range(horizon):
+            if self.compact_finished and len(live) * 4 <= len(group) * 3:
+                group, group_params = live, params[torch.as_tensor(live)]
+                blocks = self._forward_blocks(group_params)
+                position_in_group = np.arange(len(live))
+            all_live = len(live) == population
+            # Basic slices while every member is live: views instead of fancy-index copies.
+            rows = slice(None) if all_live else live
+            group_rows = slice(None) if len(group) == population else group
+            action = self._forward(group_params, torch.from_numpy(obs_traj[group_rows, t]), blocks)
+            if len(group) != len(live):
+                action = action[position_in_group]
+            actions[rows, t] = action
+            ctrl[rows] = action
+
+            batch.step(ids=None if all_live else live, nstep=self.frame_skip)
+
+            qpos, qvel = state_qpos[rows], state_qvel[rows]
+            if rules.x_from_body is not None:
+                x_after = body_xpos[rows, rules.x_from_body, 0]
             else:
-                live = np.arange(population)
-                # Members whose parameters the forward runs on: all of them, or with compact_finished a
-                # group re-gathered (one copy of its rows) only when the live set has shrunk to 3/4 of it,
-                # so finished members cost a little wasted forward instead of one P x D copy each.
-                group, group_params = live, params
-                layers = self.policy.split(group_params)
-                position_in_group = live  # row of each live member in group_params
-                skipped = rules.skipped_qpos
-                for t in range(horizon):
-                    if self.compact_finished and len(live) * 4 <= len(group) * 3:
-                        group, group_params = live, params[torch.as_tensor(live)]
-                        layers = self.policy.split(group_params)
-                        position_in_group = np.arange(len(live))
-                    all_live = len(live) == population
-                    # Basic slices while every member is live: views instead of fancy-index copies.
-                    rows = slice(None) if all_live else live
-                    group_rows = slice(None) if len(group) == population else group
-                    action = self.policy(group_params, torch.from_numpy(obs_traj[group_rows, t]), layers).numpy()
-                    if len(group) != len(live):
-                        action = action[position_in_group]
-                    actions[rows, t] = action
-                    ctrl[rows] = action
+                x_after = qpos[:, 0]
+            forward_reward = c["_forward_reward_weight"] * ((x_after - x_before[rows]) / self.dt)
+            x_before[rows] = x_after
+            # float32 like gymnasium's np.sum(np.square(action)) on the float32 action
+            ctrl_cost = self.ctrl_cost_weight * np.square(action).sum(axis=1)
 
-                    batch.step(ids=None if all_live else live, nstep=self.frame_skip)
+            # A view while all are live; a fancy-index copy otherwise, written back below.
+            observation = obs_traj[rows, t + 1]
+            n_pos = nq - skipped
+            observation[:, :n_pos] = qpos[:, skipped:]
+            if rules.clip_qvel is None:
+                observation[:, n_pos : n_pos + nv] = qvel
+            else:
+                observation[:, n_pos : n_pos + nv] = np.clip(qvel, -rules.clip_qvel, rules.clip_qvel)
 
-                    qpos, qvel = state_qpos[rows], state_qvel[rows]
-                    if rules.x_from_body is not None:
-                        x_after = body_xpos[rows, rules.x_from_body, 0]
-                    else:
-                        x_after = qpos[:, 0]
-                    forward_reward = c["_forward_reward_weight"] * ((x_after - x_before[rows]) / self.dt)
-                    x_before[rows] = x_after
-                    # float32 like gymnasium's np.sum(np.square(action)) on the float32 action
-                    ctrl_cost = self.ctrl_cost_weight * np.square(action).sum(axis=1)
-
-                    # A view while all are live; a fancy-index copy otherwise, written back below.
-                    observation = obs_traj[rows, t + 1]
-                    n_pos = nq - skipped
-                    observation[:, :n_pos] = qpos[:, skipped:]
-                    if rules.clip_qvel is None:
-                        observation[:, n_pos : n_pos + nv] = qvel
-                    else:
-                        observation[:, n_pos : n_pos + nv] = np.clip(qvel, -rules.clip_qvel, rules.clip_qvel)
-
-                    if rules.healthy is not None:
-                        healthy = rules.healthy(qpos, qvel, c)
-                        reward = forward_reward + healthy * c["_healthy_reward"]
-                        term = ~healthy if c["_terminate_when_unhealthy"] else np.zeros(len(live), dtype=bool)
-                    else:
-                        reward = forward_reward
-                        term = None
-                    if rules.contact_forces:
-                        self._contact_forces(batch, live, cfrc_ext)
-                        low, high = c["_contact_force_range"]
-                        clipped = np.clip(cfrc_ext[rows], low, high)
-                        contact_cost = c["_contact_cost_weight"] * np.square(clipped).reshape(len(live), -1).sum(axis=1)
-                        observation[:, n_pos + nv :] = clipped[:, 1:].reshape(len(live), -1)
-                        reward = reward - (ctrl_cost + contact_cost)
-                    else:
-                        reward = reward - ctrl_cost
-                    if not all_live:
-                        obs_traj[live, t + 1] = observation
-                    rewards[rows, t] = reward
-                    lengths[rows] = t + 1
-                    if t + 1 >= horizon:  # time limit (gymnasium's TimeLimit: truncated even when also terminated)
-                        truncated[rows, t] = True
-                    if term is not None and term.any():
-                        terminated[rows, t] = term
-                        if t + 1 >= horizon:
-                            break
-                        live = live[~term]
-                        if len(live) == 0:
-                            break
-                        position_in_group = np.searchsorted(group, live)
+            if rules.healthy is not None:
+                healthy = rules.healthy(qpos, qvel, c)
+                reward = forward_reward + healthy * c["_healthy_reward"]
+                term = ~healthy if c["_terminate_when_unhealthy"] else np.zeros(len(live), dtype=bool)
+            else:
+                reward = forward_reward
+                term = None
+            if rules.contact_forces:
+                self._contact_forces(batch, live, cfrc_ext)
+                low, high = c["_contact_force_range"]
+                clipped = np.clip(cfrc_ext[rows], low, high)
+                contact_cost = c["_contact_cost_weight"] * np.square(clipped).reshape(len(live), -1).sum(axis=1)
+                observation[:, n_pos + nv :] = clipped[:, 1:].reshape(len(live), -1)
+                reward = reward - (ctrl_cost + contact_cost)
+            else:
+                reward = reward - ctrl_cost
+            if not all_live:
+                obs_traj[live, t + 1] = observation
+            rewards[rows, t] = reward
+            lengths[rows] = t + 1
+            if t + 1 >= horizon:  # time limit (gymnasium's TimeLimit: truncated even when also terminated)
+                truncated[rows, t] = True
+            if term is not None and term.any():
+                terminated[rows, t] = term
+                if t + 1 >= horizon:
+                    break
+                live = live[~term]
+                if len(live) == 0:
+                    break
+                position_in_group = np.searchsorted(group, live)
 
         returns = rewards.sum(axis=1)
         transitions = transitions_from_arrays(
