@@ -17,7 +17,8 @@ Per iteration: 100k frames x (env step + update) + 50 generations + 2 evaluation
 Each part is timed in rounds (medians). ``--compare`` also times, in the same process and
 taking turns with the tuned configuration within every round, the reference configuration:
 ``td3.fast=false`` (stock ``TD3Loss`` + ``SoftUpdate`` + default Adam, TorchRL ``Collector``),
-``td3.num_threads=null`` (the process's threads), the ES forward on one thread; each part's ratio
+``td3.num_threads=null`` (the process's threads), buffer writes through TorchRL's ``extend``
+(``direct_writes=False``), the ES forward on one thread; each part's ratio
 is reported.
 Usage: ``python -m benchmarks.iteration [--quick] [--compare] [--env halfcheetah] [--out PATH]``.
 """
@@ -71,6 +72,7 @@ class Setup:
         self.td3 = make_td3(cfg, self.actor, critic, train_env.action_spec)
         self.collector, self.batches = make_td3_batches(cfg, train_env, self.td3)
         self.buffer = make_multibuffer(cfg)
+        self.buffer.direct_writes = not reference  # the reference writes through TorchRL's extend
         self.es, self.es_collector, self.threshold = make_es(cfg, self.actor), make_es_collector(cfg, self.actor), make_threshold(cfg)
         if reference and hasattr(self.es_collector.backend, "threaded_forward"):
             self.es_collector.backend.threaded_forward = False
@@ -163,7 +165,7 @@ class Setup:
         cpu_iteration_s = sum(p["cpu_s_per_iteration"] for p in parts.values())
         return {"cpu_iteration_s": cpu_iteration_s, "cpu_run_h": cpu_iteration_s * cfg.iterations / 3600,"env": cfg.env.id, "iterations": cfg.iterations, "parts": parts, "iteration_s": iteration_s, "run_s": run_s,
                 "run_h": run_s / 3600, "goal": "20 iterations <= 4 h", "met": run_s <= 4 * 3600,
-                "config": {"td3.fast": cfg.td3.fast, "td3.num_threads": cfg.td3.num_threads,
+                "config": {"td3.fast": cfg.td3.fast, "td3.num_threads": cfg.td3.num_threads, "direct_writes": self.buffer.direct_writes,
                            "es_threaded_forward": getattr(self.es_collector.backend, "threaded_forward", None)}}
 
 

@@ -5,7 +5,9 @@ Methods, interleaved in one run (HalfCheetah-v5, the paper's actor, exploration 
   collector        TorchRL ``GymEnv`` + ``Collector`` (the reference path, ``td3.fast=false``)
   gym_collector    :class:`~torchrl_esrl.collectors.td3_collector.GymTD3Collector` (the default)
   collector_write  the reference path plus the ``noisy`` MultiBuffer write of every frame
-  gym_collector_write  the default path plus the write (what ``td3_phase`` does per frame)
+                   through TorchRL's ``extend`` (``direct_writes=False``)
+  gym_collector_write  the default path plus the write (what ``td3_phase`` does per frame,
+                   one tensor copy per key: ``direct_writes=True``)
 
 Goal: gym_collector_write <= 0.3 ms per frame. Usage: ``python -m benchmarks.td3_frame [--quick] [--out PATH]``.
 """
@@ -37,6 +39,7 @@ def run(repeats: int = 7, calls: int = 200, capacity: int = 1_000_000) -> dict:
         td3 = make_td3(cfg, actor, critic, env.action_spec)
         frames = iter(make_td3_collector(env, td3, 1, fast=fast))
         buffer = make_multibuffer(cfg)
+        buffer.direct_writes = fast  # the reference writes through TorchRL's extend
         methods[name] = lambda frames=frames: next(frames)
         methods[f"{name}_write"] = lambda frames=frames, buffer=buffer: buffer.extend(next(frames), "noisy")
     timings = interleaved(methods, calls=calls, repeats=repeats, warmup=20)

@@ -170,6 +170,26 @@ def test_gather_cache_follows_load_state_dict():
 
 
 # ------------------------------------------------------------- a TorchRL replay buffer
+def test_direct_writes_store_what_torchrl_extend_stores():
+    """One transition at a time (the TD3 side) and batches (ES trajectories), wrapping around the
+    capacity: the same storages, lengths, writer states and samples as TorchRL's own extend."""
+    direct, stock = (MultiBuffer(capacity=40, batch_size=16, direct_writes=flag) for flag in (True, False))
+    for step in range(30):
+        for name, n in (("noisy", 1), ("good", 1 + step % 4), ("bad", 3)):
+            data = transitions(n, fill=float(step))
+            data["action"] = torch.randn(n, 1)
+            direct.extend(data.clone(), name)
+            stock.extend(data.clone(), name)
+    for name in direct.names:
+        assert len(direct[name]) == len(stock[name])
+        assert direct[name].writer.state_dict() == stock[name].writer.state_dict()
+        assert (direct[name].storage.get(slice(0, 40)) == stock[name].storage.get(slice(0, 40))).all()
+    torch.manual_seed(3)
+    sample = stock.sample()
+    torch.manual_seed(3)
+    assert (direct.sample() == sample).all()
+
+
 def test_multibuffer_is_a_torchrl_replay_buffer_ensemble():
     from torchrl.data import ReplayBuffer, ReplayBufferEnsemble
     from torchrl.data.replay_buffers import SamplerEnsemble, StorageEnsemble

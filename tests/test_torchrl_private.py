@@ -9,7 +9,12 @@ import torch
 import torchrl
 from tensordict import TensorDict
 from torchrl.collectors import Collector
-from torchrl.data import LazyTensorStorage, ListStorage
+from torchrl.data import (
+    LazyTensorStorage,
+    ListStorage,
+    SamplerWithoutReplacement,
+    TensorDictReplayBuffer,
+)
 from torchrl.envs import GymEnv
 from torchrl.objectives import SoftUpdate, TD3Loss
 
@@ -54,6 +59,7 @@ def real_objects(env, td3_loss, collector) -> dict:
     storage.set(range(2), batch(2))
     return {
         "torchrl.data.LazyTensorStorage": storage,
+        "torchrl.data.TensorDictRoundRobinWriter": TensorDictReplayBuffer(storage=LazyTensorStorage(10)).writer,
         "torchrl.objectives.TD3Loss": td3_loss,
         "torchrl.objectives.SoftUpdate": SoftUpdate(td3_loss, tau=0.005),
         "torchrl.collectors.Collector": collector,
@@ -86,6 +92,37 @@ def test_tensor_storage_data_is_the_storage_itself():
     tensors["observation"][0] = 7.0  # the same memory, not a copy
     assert (storage.get(torch.tensor([0]))["observation"] == 7).all()
     assert torchrl_private.tensor_storage_data(ListStorage(10)) is None
+
+
+def test_append_rows_writes_what_extend_writes():
+    torch.manual_seed(0)
+    stock, fast = (TensorDictReplayBuffer(storage=LazyTensorStorage(25), batch_size=7) for _ in range(2))
+    stock.extend(batch(3))  # both initialised by TorchRL's own first write
+    fast.extend(stock.storage.get(slice(0, 3)).exclude("index"))
+    for step, n in enumerate((1, 1, 5, 1, 12, 1, 9, 1)):  # wraps around the 25-item capacity twice
+        data = batch(n)
+        expected = stock.extend(data.clone())
+        keys = list(data.keys(True, True)) if step % 2 else None  # given by the caller, or read
+        index = torchrl_private.append_rows(fast, data.clone(), keys)
+        assert torch.equal(index, expected)
+        assert len(fast) == len(stock)
+        assert (fast.storage.get(slice(0, len(fast))) == stock.storage.get(slice(0, len(stock)))).all()
+    assert fast.writer.state_dict() == stock.writer.state_dict()
+    assert fast.storage.state_dict()["_len"] == stock.storage.state_dict()["_len"]
+    torch.manual_seed(1)
+    sample_stock = stock.sample()
+    torch.manual_seed(1)
+    assert (fast.sample() == sample_stock).all()
+
+
+def test_append_rows_declines_what_it_does_not_cover():
+    fresh = TensorDictReplayBuffer(storage=LazyTensorStorage(10))
+    assert torchrl_private.append_rows(fresh, batch(2)) is None and len(fresh) == 0  # storage not initialised
+    fresh.extend(batch(2))
+    assert torchrl_private.append_rows(fresh, batch(2).exclude("action")) is None and len(fresh) == 2  # other keys
+    other_sampler = TensorDictReplayBuffer(storage=LazyTensorStorage(10), sampler=SamplerWithoutReplacement())
+    other_sampler.extend(batch(2))
+    assert torchrl_private.append_rows(other_sampler, batch(2)) is None and len(other_sampler) == 2
 
 
 # ----------------------------------------------------------------------------- objectives

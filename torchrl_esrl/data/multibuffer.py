@@ -26,7 +26,7 @@ from torchrl.data import LazyTensorStorage, ReplayBufferEnsemble, TensorDictRepl
 from torchrl.data.replay_buffers import SamplerEnsemble, StorageEnsemble
 
 from torchrl_esrl.errors import ConfigError
-from torchrl_esrl.torchrl_private import tensor_storage_data
+from torchrl_esrl.torchrl_private import append_rows, tensor_storage_data
 
 BUFFER_NAMES = ("good", "bad", "noisy")
 
@@ -288,6 +288,10 @@ class MultiBuffer(ReplayBufferEnsemble):
             (what a TorchRL ``Collector(..., replay_buffer=mb)`` writes lands there).
         source_key: key of the per-item buffer index in sampled batches.
         device: device of the buffers' storages (when built here).
+        direct_writes: write each batch into the storage one tensor copy per key where the
+            buffer is the plain layout of :func:`make_buffer` (what ``extend`` writes, ~3x
+            cheaper for one transition; ``torchrl_esrl.torchrl_private.append_rows``); False:
+            TorchRL's ``extend`` for every write.
     """
 
     def __init__(
@@ -303,6 +307,7 @@ class MultiBuffer(ReplayBufferEnsemble):
         default: str = "noisy",
         source_key: str = "buffer",
         device: str | torch.device = "cpu",
+        direct_writes: bool = True,
     ):
         names = tuple(names)
         ratio = validate_ratio(ratio) if len(names) == 3 else tuple(float(r) for r in ratio)
@@ -328,6 +333,7 @@ class MultiBuffer(ReplayBufferEnsemble):
         self.default = default
         self.source_key = source_key
         self.device = torch.device(device)
+        self.direct_writes = bool(direct_writes)
 
     # ------------------------------------------------------------ settings
     ratio = property(lambda self: self.sampler.ratio, lambda self, value: setattr(self.sampler, "ratio", tuple(float(r) for r in value)))
@@ -378,7 +384,11 @@ class MultiBuffer(ReplayBufferEnsemble):
         name = self.default if name is None else name
         if self.keys is not None:
             data = data.select(*self.keys)
-        return self.buffers[name].extend(data.reshape(-1), **kwargs)
+        buffer, rows = self.buffers[name], data.reshape(-1)
+        # One copy per key into the storage (what extend writes, tests/test_torchrl_private.py);
+        # extend itself for a first write or any buffer layout append_rows does not cover.
+        index = append_rows(buffer, rows, self.keys) if self.direct_writes and not kwargs else None
+        return buffer.extend(rows, **kwargs) if index is None else index
 
     add = extend
 
