@@ -120,6 +120,8 @@ def test_append_rows_declines_what_it_does_not_cover():
     assert torchrl_private.append_rows(fresh, batch(2)) is None and len(fresh) == 0  # storage not initialised
     fresh.extend(batch(2))
     assert torchrl_private.append_rows(fresh, batch(2).exclude("action")) is None and len(fresh) == 2  # other keys
+    as_float64 = batch(2).apply(lambda t: t.double() if t.is_floating_point() else t)
+    assert torchrl_private.append_rows(fresh, as_float64) is None and len(fresh) == 2  # another dtype: extend casts
     other_sampler = TensorDictReplayBuffer(storage=LazyTensorStorage(10), sampler=SamplerWithoutReplacement())
     other_sampler.extend(batch(2))
     assert torchrl_private.append_rows(other_sampler, batch(2)) is None and len(other_sampler) == 2

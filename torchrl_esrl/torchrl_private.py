@@ -89,13 +89,16 @@ def append_rows(buffer, data: TensorDictBase, keys=None) -> torch.Tensor | None:
             return None
         layout = _APPEND_LAYOUTS[buffer] = (stored, keys, [stored.get(key) for key in keys], stored.get("index"))
     _, _, destinations, stored_index = layout
+    values = [data.get(key) for key in keys]
+    if any(v.dtype != d.dtype or v.shape[1:] != d.shape[1:] for v, d in zip(values, destinations)):
+        return None  # extend casts (or refuses) as TorchRL decides
     rows = data.batch_size[0]
     cursor = writer._cursor
     index = torch.arange(cursor, cursor + rows) % storage.max_size
     writer._cursor = (cursor + rows) % storage.max_size
     writer._write_count += rows
-    for key, destination in zip(keys, destinations):
-        destination[index] = data.get(key)
+    for value, destination in zip(values, destinations):
+        destination[index] = value
     stored_index[index] = index
     storage._set_last_cursor(index)
     storage._len = min(storage._len + rows, storage.max_size)
