@@ -58,8 +58,8 @@ def append_rows(buffer, data: TensorDictBase, keys=None) -> torch.Tensor | None:
     """Write the flat batch ``data`` into ``buffer`` exactly as ``buffer.extend(data)`` does (same
     rows at the same indices, the stored ``"index"`` leaf, the writer's cursor and count, the
     storage's length), one tensor copy per key; None, writing nothing, when the buffer is not
-    the plain layout this covers (the caller then calls ``extend``). ``keys``: the keys ``data``
-    holds, when the caller knows them (it selected them); read from ``data`` otherwise.
+    the plain layout this covers (the caller then calls ``extend``). ``keys``: the keys to store,
+    as ``extend(data.select(*keys))`` would (``data`` may hold more); all of ``data``'s otherwise.
 
     Why private: the TD3 side writes one transition per frame, and ``TensorDictReplayBuffer.extend``
     spends ~0.24 ms of TensorDict machinery (inverse transform, ``to``, validation of every
@@ -92,16 +92,18 @@ def append_rows(buffer, data: TensorDictBase, keys=None) -> torch.Tensor | None:
     values = [data.get(key) for key in keys]
     if any(v.dtype != d.dtype or v.shape[1:] != d.shape[1:] for v, d in zip(values, destinations)):
         return None  # extend casts (or refuses) as TorchRL decides
-    rows = data.batch_size[0]
+    rows, capacity = data.batch_size[0], storage.max_size
     cursor = writer._cursor
-    index = torch.arange(cursor, cursor + rows) % storage.max_size
-    writer._cursor = (cursor + rows) % storage.max_size
+    index = torch.arange(cursor, cursor + rows)
+    # Rows that fit before the end of the storage are one slice (a view copy); a wrap needs the indices.
+    where = slice(cursor, cursor + rows) if cursor + rows <= capacity else index.remainder_(capacity)
+    writer._cursor = (cursor + rows) % capacity
     writer._write_count += rows
     for value, destination in zip(values, destinations):
-        destination[index] = value
-    stored_index[index] = index
+        destination[where] = value
+    stored_index[where] = index
     storage._set_last_cursor(index)
-    storage._len = min(storage._len + rows, storage.max_size)
+    storage._len = min(storage._len + rows, capacity)
     storage._bump_mutation_revision()
     writer._mark_update_entities(index)
     buffer.sampler.extend(index)

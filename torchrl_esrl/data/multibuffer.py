@@ -381,14 +381,13 @@ class MultiBuffer(ReplayBufferEnsemble):
                 if mask.any():
                     self.extend(flat[mask], buffer_name)
             return None
-        name = self.default if name is None else name
-        if self.keys is not None:
-            data = data.select(*self.keys)
-        buffer, rows = self.buffers[name], data.reshape(-1)
-        # One copy per key into the storage (what extend writes, tests/test_torchrl_private.py);
+        buffer = self.buffers[name if name is not None else self.default]
+        # One copy per stored key into the storage (what extend writes, tests/test_torchrl_private.py);
         # extend itself for a first write or any buffer layout append_rows does not cover.
-        index = append_rows(buffer, rows, self.keys) if self.direct_writes and not kwargs else None
-        return buffer.extend(rows, **kwargs) if index is None else index
+        index = append_rows(buffer, data, self.keys) if self.direct_writes and not kwargs and data.batch_dims == 1 else None
+        if index is None:
+            index = buffer.extend((data if self.keys is None else data.select(*self.keys)).reshape(-1), **kwargs)
+        return index
 
     add = extend
 
