@@ -289,9 +289,9 @@ class MultiBuffer(ReplayBufferEnsemble):
         source_key: key of the per-item buffer index in sampled batches.
         device: device of the buffers' storages (when built here).
         direct_writes: write each batch into the storage one tensor copy per key where the
-            buffer is the plain layout of :func:`make_buffer` (what ``extend`` writes, ~3x
-            cheaper for one transition; ``torchrl_esrl.torchrl_private.append_rows``); False:
-            TorchRL's ``extend`` for every write.
+            buffer is the plain layout of :func:`make_buffer` (what ``extend`` writes: one
+            transition in ~0.05 ms instead of ~0.24; ``torchrl_esrl.torchrl_private.append_rows``);
+            False: TorchRL's ``extend`` for every write.
     """
 
     def __init__(
