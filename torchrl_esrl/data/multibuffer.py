@@ -383,8 +383,9 @@ class MultiBuffer(ReplayBufferEnsemble):
             return None
         buffer = self.buffers[name if name is not None else self.default]
         # One copy per stored key into the storage (what extend writes, tests/test_torchrl_private.py);
-        # extend itself for a first write or any buffer layout append_rows does not cover.
-        index = append_rows(buffer, data, self.keys) if self.direct_writes and not kwargs and data.batch_dims == 1 else None
+        # extend itself for a first write, a batch of another shape, or a buffer layout append_rows
+        # does not cover (it declines those).
+        index = append_rows(buffer, data, self.keys) if self.direct_writes and not kwargs else None
         if index is None:
             index = buffer.extend((data if self.keys is None else data.select(*self.keys)).reshape(-1), **kwargs)
         return index
