@@ -1,11 +1,13 @@
 """ES population evaluation throughput: env-steps/s of one generation of full episodes.
 
-120 offspring of the paper's 2x256 tanh actor (sigma 0.005 perturbations of a random actor),
-one episode each (up to 1000 steps), measured in one run for:
+120 offspring of the paper's 2x256 tanh actor (an OpenAI-ES population: 60 mirrored pairs of
+sigma 0.005 perturbations of a random actor), one episode each (up to 1000 steps), measured in
+one run for:
 
-  batched    the ``mujoco_batch`` backend (mujoco.batch.Batch + one batched forward per step;
-             the forward over two halves on two threads)
-  batched_sequential  the same, the forward on one thread (``threaded_forward=False``)
+  batched    the ``mujoco_batch`` backend as the ES phase runs it (mujoco.batch.Batch + one
+             batched forward per step over the mirrored pairs, two blocks of pairs on two threads)
+  batched_rows  the same with the forward over the flat rows (two halves on two threads)
+  batched_sequential  the flat rows' forward on one thread (``threaded_forward=False``)
   raw        the same mujoco.batch stepping with fixed controls: no policy, no rewards (the ceiling)
   serial     one gymnasium env, offspring after offspring, torch forward per step with the
              offspring's weights loaded into an actor
@@ -40,24 +42,26 @@ from torchrl.data import Bounded
 
 from torchrl_esrl.collectors.gym_backend import GymBackend
 from torchrl_esrl.collectors.mujoco_batch import MujocoBatchBackend
+from torchrl_esrl.es.openes import OpenES
 from torchrl_esrl.modules.networks import PopulationActor, flat_parameters, load_flat_parameters, make_actor
 
 ENVS = ["HalfCheetah-v5", "Walker2d-v5"]
 
 
 def make_population(env_id: str, members: int, sigma: float = 0.005, seed: int = 0):
+    """A random actor and an OpenAI-ES population around it: ``(actor, params, mirrored)``."""
     env = gym.make(env_id)
     torch.manual_seed(seed)
     low, high = torch.as_tensor(env.action_space.low), torch.as_tensor(env.action_space.high)
     actor = make_actor(env.observation_space.shape[0], Bounded(low, high, shape=low.shape))
-    theta = flat_parameters(actor)
-    params = (theta + sigma * torch.randn(members, theta.numel())).contiguous()
-    return actor, params
+    es = OpenES(flat_parameters(actor), population_size=members, sigma=sigma, generator=torch.Generator().manual_seed(seed))
+    params = es.ask().contiguous()
+    return actor, params, es.mirrored()
 
 
-def time_backend(backend, params, seeds) -> dict:
+def time_backend(backend, params, seeds, mirrored=None) -> dict:
     start = time.perf_counter()
-    generation = backend.rollout(params, seeds)
+    generation = backend.rollout(params, seeds, mirrored=mirrored)
     seconds = time.perf_counter() - start
     return {"steps": generation.frames, "seconds": seconds, "steps_per_s": generation.frames / seconds,
             "mean_return": float(generation.returns.mean()), "mean_length": float(generation.lengths.float().mean())}
@@ -118,7 +122,7 @@ def interleaved_runs(repeats: int, measures: dict) -> dict:
 
 
 def run(env_id: str, members: int, steps: int, nthread: int, sweep: bool, repeats: int = 1, skip_slow: bool = False) -> dict:
-    actor, params = make_population(env_id, members)
+    actor, params, mirrored = make_population(env_id, members)
     policy = PopulationActor(actor)
     seeds = list(range(1000, 1000 + members))
     batched_backend = MujocoBatchBackend(env_id, policy, max_episode_steps=steps, nthread=nthread)
@@ -127,7 +131,8 @@ def run(env_id: str, members: int, steps: int, nthread: int, sweep: bool, repeat
     sequential_backend.rollout(params[:2], seeds[:2])
     lockstep_backend = GymBackend(env_id, policy, max_episode_steps=steps)
     measures = {
-        "batched": lambda: time_backend(batched_backend, params, seeds),
+        "batched": lambda: time_backend(batched_backend, params, seeds, mirrored),
+        "batched_rows": lambda: time_backend(batched_backend, params, seeds),
         "batched_sequential": lambda: time_backend(sequential_backend, params, seeds),
         "raw": lambda: time_raw_physics(env_id, members, steps, seeds, nthread),
     }

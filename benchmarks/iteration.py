@@ -18,7 +18,7 @@ Each part is timed in rounds (medians). ``--compare`` also times, in the same pr
 taking turns with the tuned configuration within every round, the reference configuration:
 ``td3.fast=false`` (stock ``TD3Loss`` + ``SoftUpdate`` + default Adam, TorchRL ``Collector``),
 ``td3.num_threads=null`` (the process's threads), buffer writes through TorchRL's ``extend``
-(``direct_writes=False``), the ES forward on one thread; each part's ratio
+(``direct_writes=False``), the ES forward over the flat rows on one thread; each part's ratio
 is reported.
 Usage: ``python -m benchmarks.iteration [--quick] [--compare] [--env halfcheetah] [--out PATH]``.
 """
@@ -66,7 +66,7 @@ class Setup:
         elif td3_threads is not None:  # the tuned configuration with another thread count for the TD3 phase
             cfg.td3.num_threads = td3_threads
         seed_everything(0)
-        self.cfg = cfg
+        self.cfg, self.reference = cfg, reference
         train_env = make_train_env(cfg)
         self.actor, critic = make_actor_critic(cfg, train_env)
         self.td3 = make_td3(cfg, self.actor, critic, train_env.action_spec)
@@ -104,7 +104,7 @@ class Setup:
         population = self.es.ask()
         self.start_cpu()
         start = time.perf_counter()
-        generation = self.es_collector.evaluate(population)
+        generation = self.es_collector.evaluate(population, mirrored=None if self.reference else self.es.mirrored())
         self.record("es_evaluation", time.perf_counter() - start, 1)
         self.env_steps_per_generation = generation.frames
         self.start_cpu()
@@ -165,7 +165,7 @@ class Setup:
         cpu_iteration_s = sum(p["cpu_s_per_iteration"] for p in parts.values())
         return {"cpu_iteration_s": cpu_iteration_s, "cpu_run_h": cpu_iteration_s * cfg.iterations / 3600,"env": cfg.env.id, "iterations": cfg.iterations, "parts": parts, "iteration_s": iteration_s, "run_s": run_s,
                 "run_h": run_s / 3600, "goal": "20 iterations <= 4 h", "met": run_s <= 4 * 3600,
-                "config": {"td3.fast": cfg.td3.fast, "td3.num_threads": cfg.td3.num_threads, "direct_writes": self.buffer.direct_writes,
+                "config": {"td3.fast": cfg.td3.fast, "td3.num_threads": cfg.td3.num_threads, "direct_writes": self.buffer.direct_writes, "es_mirrored": not self.reference,
                            "es_threaded_forward": getattr(self.es_collector.backend, "threaded_forward", None)}}
 
 

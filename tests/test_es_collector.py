@@ -4,7 +4,7 @@ import torch
 from torchrl_esrl.errors import ConfigError
 from torchrl_esrl.envs import make_env
 from torchrl_esrl.collectors.es_collector import ESCollector
-from torchrl_esrl.modules.networks import flat_parameters, make_actor
+from torchrl_esrl.modules.networks import Mirrored, flat_parameters, make_actor
 
 
 @pytest.fixture(scope="module")
@@ -86,3 +86,10 @@ def test_unknown_env_suggests_the_closest():
     actor = make_actor(8, make_env("swimmer").action_spec)
     with pytest.raises(ConfigError, match="did you mean 'walker2d'"):
         ESCollector("walker2", actor)
+
+
+def test_mirrored_that_is_not_the_population_is_refused(walker):
+    actor, collector = walker
+    params = population(actor, 4, 0.1)
+    with pytest.raises(ValueError, match="mirrored"):
+        collector.evaluate(params, seeds=list(range(4)), mirrored=Mirrored(params[0], params[:2] - params[0]))

@@ -12,6 +12,7 @@ from torchrl_esrl.collectors.backends import backend_class, default_backend
 from torchrl_esrl.collectors.es_collector import ESCollector
 from torchrl_esrl.collectors.gym_backend import GymBackend
 from torchrl_esrl.collectors.mujoco_batch import MujocoBatchBackend
+from torchrl_esrl.es.openes import OpenES
 from torchrl_esrl.modules.networks import PopulationActor, flat_parameters, make_actor
 
 ENV_IDS = ["HalfCheetah-v5", "Walker2d-v5", "Ant-v5", "Swimmer-v5", "Hopper-v5"]
@@ -142,6 +143,33 @@ def test_threaded_forward_gives_the_one_thread_episodes_bit_for_bit(env_id):
     if env_id != "HalfCheetah-v5":
         assert (sequential.lengths < steps).any()
     assert len(MujocoBatchBackend(env_id, policy)._forward_blocks(params)) == 2
+
+
+@pytest.mark.parametrize("threaded_forward", [True, False])
+@pytest.mark.parametrize("env_id", ["HalfCheetah-v5", "Walker2d-v5"])
+def test_mirrored_forward_gives_the_episodes_of_the_flat_rows(env_id, threaded_forward):
+    """An OpenAI-ES population evaluated through its mirrored pairs plays the gym reference's
+    episodes with the same forward; two threads or one, bit for bit. (The pairs' forward equals
+    the flat rows' up to float32 rounding: tests/test_networks.py.)"""
+    steps, members = 120, 18
+    policy, params = population(env_id, members, sigma=0.3)
+    es = OpenES(params[0].clone(), population_size=members, sigma=0.3, generator=torch.Generator().manual_seed(4))
+    params = es.ask()
+    seeds = [7 * p + 1 for p in range(members)]
+    reference = GymBackend(env_id, policy, max_episode_steps=steps).rollout(params, seeds, mirrored=es.mirrored())
+    backend = MujocoBatchBackend(env_id, policy, max_episode_steps=steps, threaded_forward=threaded_forward)
+    mirrored = backend.rollout(params, seeds, mirrored=es.mirrored())
+    assert torch.equal(mirrored.lengths, reference.lengths)
+    torch.testing.assert_close(mirrored.returns, reference.returns, rtol=1e-6, atol=1e-6)
+    for key in KEYS:
+        torch.testing.assert_close(mirrored.transitions.get(key), reference.transitions.get(key), rtol=1e-5, atol=1e-5)
+    flat = backend.rollout(params, seeds)
+    assert not torch.equal(flat.transitions.get("action"), mirrored.transitions.get("action"))  # the pairs' forward was used
+    other = MujocoBatchBackend(env_id, policy, max_episode_steps=steps, threaded_forward=not threaded_forward)
+    assert torch.equal(other.rollout(params, seeds, mirrored=es.mirrored()).returns, mirrored.returns)
+    assert len(backend._mirrored_blocks(es.mirrored())) == (2 if threaded_forward else 1)
+    if env_id == "Walker2d-v5":
+        assert (reference.lengths < steps).any()
 
 
 def test_registered_and_chosen_by_default():

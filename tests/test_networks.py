@@ -1,10 +1,11 @@
 import copy
 
+import numpy as np
 import torch
 from tensordict import TensorDict
 
 from torchrl_esrl.envs import make_env
-from torchrl_esrl.modules.networks import PopulationActor, flat_parameters, load_flat_parameters, make_actor
+from torchrl_esrl.modules.networks import Mirrored, PopulationActor, flat_parameters, load_flat_parameters, make_actor
 
 
 def test_actor_is_the_papers_2x256_tanh_network_within_bounds():
@@ -50,3 +51,22 @@ def test_population_actor_gives_a_block_of_members_the_actions_of_the_whole_popu
     whole = policy(population, observations)
     for block in (slice(0, 60), slice(60, 120), slice(7, 8), slice(1, 120)):
         assert torch.equal(policy(population[block], observations[block]), whole[block])
+
+
+def test_mirrored_forward_gives_each_pair_the_actions_of_its_two_rows():
+    """PopulationActor.mirrored on center +- offsets equals the forward over the flat rows up to
+    float32 rounding, and a block of pairs gets bit for bit the actions of all pairs."""
+    actor = make_actor(17, make_env("halfcheetah").action_spec)
+    center = flat_parameters(actor)
+    offsets = 0.05 * torch.randn(30, center.numel(), generator=torch.Generator().manual_seed(1))
+    mirrored = Mirrored(center, offsets)
+    params = torch.cat([center + offsets, center - offsets])
+    assert mirrored.matches(params) and not mirrored.matches(params.flip(0))
+    observations = torch.randn(60, 17, generator=torch.Generator().manual_seed(2))
+    policy = PopulationActor(actor)
+    center_layers, offset_layers = policy.split(center[None]), policy.split(offsets)
+    pairs = policy.mirrored(center_layers, offset_layers, observations.numpy().reshape(2, 30, 17))
+    torch.testing.assert_close(torch.from_numpy(pairs.reshape(60, -1)), policy(params, observations), rtol=1e-5, atol=1e-6)
+    block = slice(10, 20)
+    part = policy.mirrored(center_layers, policy.split(offsets[block]), observations.numpy().reshape(2, 30, 17)[:, block])
+    assert np.array_equal(part, pairs[:, block])

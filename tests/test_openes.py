@@ -73,3 +73,14 @@ def test_state_dict_round_trip_continues_identically():
     b = OpenES(torch.ones(5), population_size=4, generator=torch.Generator().manual_seed(9))
     b.load_state_dict(a.state_dict())
     assert torch.equal(a.ask(), b.ask())
+
+
+def test_mirrored_is_the_asked_population_as_pairs():
+    es = OpenES(torch.randn(9), population_size=6, sigma=0.01, generator=torch.Generator().manual_seed(0))
+    population = es.ask()
+    mirrored = es.mirrored()
+    assert mirrored.offsets.shape == (3, 9)
+    assert torch.equal(population, torch.cat([mirrored.center + mirrored.offsets, mirrored.center - mirrored.offsets]))
+    es.tell(torch.arange(6.0))
+    assert es.mirrored() is None  # told: no population is pending
+    assert OpenES(torch.zeros(3), population_size=3, antithetic=False).mirrored() is None

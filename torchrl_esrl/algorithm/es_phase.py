@@ -30,7 +30,7 @@ def es_phase(
     returns = []
     for index in range(generations):
         population = es.ask()
-        generation = es_collector.evaluate(population)
+        generation = es_collector.evaluate(population, mirrored=es.mirrored())
         good = threshold.route(generation.returns)
         if shared_buffer:
             buffer.extend(generation.transitions, "noisy")

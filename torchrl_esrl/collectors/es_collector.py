@@ -16,7 +16,7 @@ from torchrl_esrl.collectors.backends import BACKENDS, available_backends, backe
 from torchrl_esrl.collectors.generation import Generation
 from torchrl_esrl.envs import resolve_env_id
 from torchrl_esrl.errors import ConfigError
-from torchrl_esrl.modules.networks import PopulationActor
+from torchrl_esrl.modules.networks import Mirrored, PopulationActor
 
 
 class ESCollector:
@@ -42,8 +42,14 @@ class ESCollector:
         self.seeds = np.random.default_rng(seed)
         self.frames = 0
 
-    def evaluate(self, params: torch.Tensor, seeds: Sequence[int] | None = None) -> Generation:
-        """Play one episode per row of ``params`` ([P, D], or [D] for a single actor)."""
+    def evaluate(self, params: torch.Tensor, seeds: Sequence[int] | None = None, mirrored: Mirrored | None = None) -> Generation:
+        """Play one episode per row of ``params`` ([P, D], or [D] for a single actor).
+
+        ``mirrored``: the same population as mirrored pairs (OpenAI-ES's antithetic sampling,
+        :meth:`~torchrl_esrl.es.openes.OpenES.mirrored`); a backend that can use it reads each
+        pair's noise once per step. The rows of ``params`` stay what is evaluated."""
+        if mirrored is not None and not mirrored.matches(params):
+            raise ValueError("mirrored: its center +- offsets are not the rows of params (member k and P/2 + k)")
         params = params.detach().float()
         if params.dim() == 1:
             params = params.unsqueeze(0)
@@ -51,7 +57,7 @@ class ESCollector:
             raise ValueError(f"expected {self.population_actor.num_parameters} parameters per member, got {params.shape[1]}")
         if seeds is None:
             seeds = self.seeds.integers(0, 2**31 - 1, size=params.shape[0]).tolist()
-        generation = self.backend.rollout(params.contiguous(), seeds)
+        generation = self.backend.rollout(params.contiguous(), seeds, mirrored=mirrored)
         self.frames += generation.frames
         return generation
 

@@ -9,7 +9,7 @@ import torch
 
 from torchrl_esrl.collectors.generation import Generation, transitions_from_arrays
 from torchrl_esrl.envs import make_gym_env, resolve_env_id
-from torchrl_esrl.modules.networks import PopulationActor
+from torchrl_esrl.modules.networks import Mirrored, PopulationActor, one_blas_thread
 
 
 class GymBackend:
@@ -32,7 +32,13 @@ class GymBackend:
             self.envs.append(make_gym_env(self.env_id, self.max_episode_steps))
         return self.envs[i]
 
-    def rollout(self, params: torch.Tensor, seeds: Sequence[int]) -> Generation:
+    def rollout(self, params: torch.Tensor, seeds: Sequence[int], mirrored: Mirrored | None = None) -> Generation:
+        """One episode per row of ``params``; given ``mirrored`` (the same population as pairs),
+        the actions come from :meth:`PopulationActor.mirrored`, as the fast backends compute them."""
+        with one_blas_thread():
+            return self._rollout(params, seeds, mirrored)
+
+    def _rollout(self, params: torch.Tensor, seeds: Sequence[int], mirrored: Mirrored | None) -> Generation:
         population, horizon = params.shape[0], self.horizon
         obs = np.zeros((population, horizon, self.observation_dim))
         next_obs = np.zeros_like(obs)
@@ -43,11 +49,17 @@ class GymBackend:
         lengths = np.zeros(population, dtype=np.int64)
         current = np.stack([self._env(p).reset(seed=int(seeds[p]))[0] for p in range(population)])
         active = np.ones(population, dtype=bool)
-        layers = self.policy.split(params)
+        if mirrored is None:
+            layers = self.policy.split(params)
+        else:
+            center, offsets = self.policy.split(mirrored.center.reshape(1, -1)), self.policy.split(mirrored.offsets)
         t = 0
         while active.any():
             # Finished members still get a (cheap) forward: slicing params would copy P x D floats.
-            action = self.policy(params, torch.as_tensor(current, dtype=torch.float32), layers).numpy()
+            if mirrored is None:
+                action = self.policy(params, torch.as_tensor(current, dtype=torch.float32), layers).numpy()
+            else:
+                action = self.policy.mirrored(center, offsets, current.astype(np.float32).reshape(2, population // 2, -1)).reshape(population, -1)
             for p in np.flatnonzero(active):
                 o, r, term, trunc, _ = self.envs[p].step(action[p])
                 obs[p, t], actions[p, t], next_obs[p, t], rewards[p, t] = current[p], action[p], o, r

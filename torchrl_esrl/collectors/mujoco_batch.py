@@ -31,7 +31,7 @@ import torch
 
 from torchrl_esrl.collectors.generation import Generation, transitions_from_arrays
 from torchrl_esrl.envs import make_gym_env, resolve_env_id
-from torchrl_esrl.modules.networks import PopulationActor
+from torchrl_esrl.modules.networks import Mirrored, PopulationActor, one_blas_thread
 
 _INTEGRATION_STATE = mujoco.mjtState.mjSTATE_INTEGRATION
 
@@ -104,6 +104,12 @@ class MujocoBatchBackend:
             forward over a contiguous block gives each member bit for bit the actions of the
             forward over all P (tests/test_networks.py), so the episodes are those of the
             one-thread loop. The physics always runs on all ``nthread`` MuJoCo threads.
+
+    Given the population as :class:`~torchrl_esrl.modules.networks.Mirrored` pairs (OpenAI-ES),
+    the forward is :meth:`PopulationActor.mirrored <torchrl_esrl.modules.networks.PopulationActor.mirrored>`
+    over blocks of pairs: each pair's noise is read once per step for both members. Its actions
+    equal the flat rows' up to float32 rounding (the rollout stays deterministic); the ``gym``
+    reference computes the same forward when given the pairs.
     """
 
     name = "mujoco_batch"
@@ -151,24 +157,55 @@ class MujocoBatchBackend:
         except Exception:  # noqa: BLE001 - unknown ids are simply not supported
             return False
 
-    def _forward_blocks(self, params: torch.Tensor) -> list[tuple[slice, list]]:
-        """The contiguous blocks the forward runs on, with their parameter views."""
-        population = params.shape[0]
+    def _blocks(self, rows: int, members_per_row: int = 1) -> list[slice]:
+        """The contiguous blocks of ``rows`` (members, or pairs of members) the forward runs on."""
         # Small populations (the 5-episode evaluations) gain nothing from a thread hand-off.
-        if not self.threaded_forward or population < 16:
-            return [(slice(0, population), self.policy.split(params))]
-        half = population // 2
-        return [(block, self.policy.split(params[block])) for block in (slice(0, half), slice(half, population))]
+        if not self.threaded_forward or rows * members_per_row < 16:
+            return [slice(0, rows)]
+        return [slice(0, rows // 2), slice(rows // 2, rows)]
 
-    def _forward(self, params: torch.Tensor, observations: torch.Tensor, blocks) -> np.ndarray:
-        """Actions of all members: the second block's forward on a worker thread during the first's."""
+    def _forward_blocks(self, params: torch.Tensor) -> list[tuple[slice, list]]:
+        """The member blocks of the forward, with their parameter views."""
+        return [(block, self.policy.split(params[block])) for block in self._blocks(params.shape[0])]
+
+    def _mirrored_blocks(self, mirrored: Mirrored) -> list[tuple[slice, list, list]]:
+        """The pair blocks of the mirrored forward, with the center's and the offsets' views."""
+        center = self.policy.split(mirrored.center.reshape(1, -1))
+        return [(block, center, self.policy.split(mirrored.offsets[block])) for block in self._blocks(mirrored.offsets.shape[0], 2)]
+
+    def _in_blocks(self, forward: Callable, blocks: list) -> None:
+        """``forward(*block)`` for every block: the second on a worker thread during the first
+        (numpy releases the GIL in its kernels)."""
         if len(blocks) == 1:
-            return self.policy(params, observations, blocks[0][1]).numpy()
+            forward(*blocks[0])
+            return
         if self._forward_thread is None:
             self._forward_thread = ThreadPoolExecutor(max_workers=1, thread_name_prefix="population-forward")
-        (first, first_layers), (second, second_layers) = blocks
-        pending = self._forward_thread.submit(self.policy, params[second], observations[second], second_layers)
-        return np.concatenate([self.policy(params[first], observations[first], first_layers).numpy(), pending.result().numpy()])
+        pending = self._forward_thread.submit(forward, *blocks[1])
+        forward(*blocks[0])
+        pending.result()
+
+    def _forward(self, params: torch.Tensor, observations: torch.Tensor, blocks) -> np.ndarray:
+        """Actions of all members of ``params`` on ``observations`` [P, obs]."""
+        actions = np.empty((params.shape[0], self.action_dim), dtype=np.float32)
+
+        def forward(block, layers):
+            actions[block] = self.policy(params[block], observations[block], layers).numpy()
+
+        self._in_blocks(forward, blocks)
+        return actions
+
+    def _forward_mirrored(self, observations: np.ndarray, blocks) -> np.ndarray:
+        """Actions of all members of mirrored pairs on ``observations`` [2K, obs] (members k, K + k)."""
+        pairs = blocks[-1][0].stop
+        pair_observations = observations.reshape(2, pairs, -1)
+        actions = np.empty((2, pairs, self.action_dim), dtype=np.float32)
+
+        def forward(block, center, offsets):
+            actions[:, block] = self.policy.mirrored(center, offsets, pair_observations[:, block])
+
+        self._in_blocks(forward, blocks)
+        return actions.reshape(2 * pairs, -1)
 
     def _get_batch(self, population: int) -> mujoco.batch.Batch:
         if self._batch is None or self._batch.nsim != population:
@@ -197,7 +234,13 @@ class MujocoBatchBackend:
             out[p] = scratch.cfrc_ext
 
     @torch.no_grad()
-    def rollout(self, params: torch.Tensor, seeds: Sequence[int]) -> Generation:
+    def rollout(self, params: torch.Tensor, seeds: Sequence[int], mirrored: Mirrored | None = None) -> Generation:
+        """One episode per row of ``params``; with ``mirrored`` (the same population as pairs) the
+        forward reads each pair's noise once (not with ``compact_finished``)."""
+        with one_blas_thread():
+            return self._rollout(params, seeds, None if self.compact_finished else mirrored)
+
+    def _rollout(self, params: torch.Tensor, seeds: Sequence[int], mirrored: Mirrored | None) -> Generation:
         population, horizon, rules, c = params.shape[0], self.horizon, self.rules, self.constants
         batch = self._get_batch(population)
         nq, nv = self.model.nq, self.model.nv
@@ -225,7 +268,7 @@ class MujocoBatchBackend:
         # group re-gathered (one copy of its rows) only when the live set has shrunk to 3/4 of it,
         # so finished members cost a little wasted forward instead of one P x D copy each.
         group, group_params = live, params
-        blocks = self._forward_blocks(group_params)
+        blocks = self._forward_blocks(group_params) if mirrored is None else self._mirrored_blocks(mirrored)
         position_in_group = live  # row of each live member in group_params
         skipped = rules.skipped_qpos
         for t in range(horizon):
@@ -237,7 +280,10 @@ class MujocoBatchBackend:
             # Basic slices while every member is live: views instead of fancy-index copies.
             rows = slice(None) if all_live else live
             group_rows = slice(None) if len(group) == population else group
-            action = self._forward(group_params, torch.from_numpy(obs_traj[group_rows, t]), blocks)
+            if mirrored is None:
+                action = self._forward(group_params, torch.from_numpy(obs_traj[group_rows, t]), blocks)
+            else:  # all members, every step (compact_finished is off)
+                action = self._forward_mirrored(obs_traj[:, t], blocks)
             if len(group) != len(live):
                 action = action[position_in_group]
             actions[rows, t] = action

@@ -23,7 +23,7 @@ import torch
 
 from torchrl_esrl.collectors.backends import LOCAL_BACKENDS, backend_class, default_backend
 from torchrl_esrl.collectors.generation import Generation
-from torchrl_esrl.modules.networks import PopulationActor
+from torchrl_esrl.modules.networks import Mirrored, PopulationActor
 
 TRAJ_IDS = ("collector", "traj_ids")
 
@@ -144,7 +144,9 @@ class RayBackend:
 
         return ray.get([w.node.remote() for w in self.workers])
 
-    def rollout(self, params: torch.Tensor, seeds: Sequence[int]) -> Generation:
+    def rollout(self, params: torch.Tensor, seeds: Sequence[int], mirrored: Mirrored | None = None) -> Generation:
+        """Shares of ``params`` on the workers, which evaluate the flat rows: ``mirrored`` is ignored
+        (a share holds no whole pairs), so actions equal a local mirrored forward's up to rounding."""
         import ray
 
         seeds = [int(s) for s in seeds]

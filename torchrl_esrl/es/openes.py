@@ -11,6 +11,8 @@ from __future__ import annotations
 
 import torch
 
+from torchrl_esrl.modules.networks import Mirrored
+
 
 def centered_ranks(values: torch.Tensor) -> torch.Tensor:
     """Fitness shaping of Salimans et al.: ranks mapped linearly to [-0.5, 0.5] (ties by order)."""
@@ -64,6 +66,7 @@ class OpenES:
         self.optimizer = torch.optim.Adam([self.mean], lr=lr)
         self.generation = 0
         self._noise: torch.Tensor | None = None
+        self._center: torch.Tensor | None = None
 
     @property
     def num_parameters(self) -> int:
@@ -74,7 +77,16 @@ class OpenES:
         half = self.population_size // 2 if self.antithetic else self.population_size
         eps = torch.randn(half, self.num_parameters, generator=self.generator)
         self._noise = torch.cat([eps, -eps]) if self.antithetic else eps
-        return self.mean.detach() + self.sigma * self._noise
+        self._center = self.mean.detach().clone()
+        return self._center + self.sigma * self._noise
+
+    def mirrored(self) -> Mirrored | None:
+        """The last :meth:`ask`'s population as mirrored pairs ``mean +- sigma * eps`` (the same
+        float32 rows: ``sigma * -eps`` is ``-(sigma * eps)`` exactly), or None when not antithetic.
+        Backends use it to read each pair's noise once (:class:`~torchrl_esrl.modules.networks.Mirrored`)."""
+        if not self.antithetic or self._noise is None:
+            return None
+        return Mirrored(self._center, self.sigma * self._noise[: self.population_size // 2])
 
     def gradient(self, returns: torch.Tensor) -> torch.Tensor:
         """Search-gradient estimate of the expected return w.r.t. the mean (ascent direction)."""
