@@ -12,7 +12,7 @@ from torchrl_esrl.collectors.es_collector import ESCollector
 from torchrl_esrl.modules.networks import flat_parameters, make_actor, make_critic
 from torchrl_esrl.algorithm.td3_phase import td3_phase
 from torchrl_esrl.collectors.td3_collector import finished_episode_returns, make_td3_collector
-from torchrl_esrl.objectives.td3 import TD3, numpy_tanh
+from torchrl_esrl.objectives.td3 import TD3
 from torchrl_esrl.data.threshold import Threshold
 
 
@@ -283,17 +283,3 @@ def test_td3_collector_resumes_mid_episode(fast):
     assert expected["next", "done"].any()
     for key in (*TRANSITION_KEYS, ("next", "episode_reward")):
         assert torch.equal(got.get(key), expected.get(key)), key
-
-
-def test_numpy_tanh_equals_torch_tanh_and_its_gradient():
-    x = (torch.randn(64, 256, generator=torch.Generator().manual_seed(0)) * 3).requires_grad_(True)
-    reference = x.detach().clone().requires_grad_(True)
-    y, expected = numpy_tanh(x), torch.tanh(reference)
-    torch.testing.assert_close(y, expected, rtol=0, atol=1.2e-7)  # one float32 ulp of values in [-1, 1]
-    grad = torch.randn_like(y)
-    y.backward(grad)
-    expected.backward(grad)
-    torch.testing.assert_close(x.grad, reference.grad)
-    with torch.no_grad():
-        assert not numpy_tanh(x).requires_grad
-    assert numpy_tanh(x.detach().double()).dtype == torch.float64  # other dtypes: torch.tanh

@@ -6,7 +6,6 @@ the policy delay; :func:`torchrl_esrl.algorithm.td3_phase.td3_phase` runs it ins
 """
 from __future__ import annotations
 
-import numpy as np
 import torch
 from torch import nn
 from tensordict import TensorDictBase
@@ -59,40 +58,7 @@ def _plain_mlp(module: nn.Module):
     return [(name, act) for name, act in layers]
 
 
-class NumpyTanh(torch.autograd.Function):
-    """``torch.tanh`` with its forward computed by numpy's ``tanh``; the backward is torch's own
-    ``tanh_backward`` on that output, as autograd computes it after ``torch.tanh``.
-
-    Written by hand because this torch CPU build's ``tanh`` is the slow part of the fused loss:
-    on a [256, 256] float32 batch it measured 167 us on one thread and 88 us on two, against
-    24 us for ``numpy.tanh`` on one (its SIMD kernel; the 2-core AMD EPYC, AVX-512). The two
-    differ by at most one float32 ulp (measured 6e-8 on tanh's [-1, 1] range), so the fused loss
-    stays equal to stock ``TD3Loss`` within float32 rounding (tests/test_td3.py). Anything but a
-    float32 CPU tensor goes to ``torch.tanh``.
-    """
-
-    @staticmethod
-    def forward(ctx, x: torch.Tensor) -> torch.Tensor:
-        y = torch.from_numpy(np.tanh(x.detach().numpy()))
-        ctx.save_for_backward(y)
-        return y
-
-    @staticmethod
-    def backward(ctx, grad: torch.Tensor) -> torch.Tensor:
-        (y,) = ctx.saved_tensors
-        return torch.ops.aten.tanh_backward(grad, y)
-
-
-def numpy_tanh(x: torch.Tensor) -> torch.Tensor:
-    """:class:`NumpyTanh` on float32 CPU tensors (through autograd only when it records), else ``torch.tanh``."""
-    if x.dtype != torch.float32 or x.device.type != "cpu":
-        return torch.tanh(x)
-    if torch.is_grad_enabled() and x.requires_grad:
-        return NumpyTanh.apply(x)
-    return torch.from_numpy(np.tanh(x.detach().numpy()))
-
-
-_ACTIVATIONS = {nn.Tanh: numpy_tanh, nn.ReLU: torch.relu}
+_ACTIVATIONS = {nn.Tanh: torch.tanh, nn.ReLU: torch.relu}
 
 
 class FusedTD3Loss(TD3LossQ1Actor):
