@@ -6,8 +6,10 @@ population ``params[P, D]`` and its reset seeds into contiguous shares, one per 
 actor runs an ordinary *local* backend (``ray.worker_backend``: ``auto``, ``gym``,
 ``mujoco_batch``, ...) on its share, and the shares come back as :class:`Generation` s that are
 concatenated in member order. ``collector/traj_ids`` is shifted to global member indices, so
-the learner, its buffers and the ES update see exactly what a local backend would produce:
-with the same seeds the generation is identical (``tests/test_ray_backend.py``).
+the learner, its buffers and the ES update see exactly what a local backend would produce from
+the flat rows: with the same seeds the generation is identical (``tests/test_ray_backend.py``).
+The workers always evaluate the flat rows; a local ``mujoco_batch`` run given OpenAI-ES's
+mirrored pairs computes the same actions up to float32 rounding, not bit for bit.
 
 Ray has no notion of "evaluate this batched population function over rows" that keeps the
 member order and the TorchRL transition layout, hence this small hand-written scatter/gather.
