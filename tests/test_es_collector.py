@@ -93,3 +93,14 @@ def test_mirrored_that_is_not_the_population_is_refused(walker):
     params = population(actor, 4, 0.1)
     with pytest.raises(ValueError, match="mirrored"):
         collector.evaluate(params, seeds=list(range(4)), mirrored=Mirrored(params[0], params[:2] - params[0]))
+
+
+def test_members_of_a_generation_are_a_generation_of_their_own(walker):
+    actor, collector = walker
+    generation = collector.evaluate(population(actor, 5, 0.3), seeds=list(range(5)))
+    part = generation.members(2, 4)
+    assert torch.equal(part.returns, generation.returns[2:4]) and torch.equal(part.lengths, generation.lengths[2:4])
+    expected = generation.transitions[generation.member_mask(torch.tensor([False, False, True, True, False]))]
+    assert torch.equal(part.transitions["observation"], expected["observation"])
+    assert torch.equal(part.transitions["collector", "traj_ids"], expected["collector", "traj_ids"] - 2)
+    assert generation.transitions["collector", "traj_ids"].max() == 4  # the whole generation is left as it was

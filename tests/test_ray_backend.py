@@ -18,6 +18,7 @@ from ray.cluster_utils import Cluster  # noqa: E402
 
 from torchrl_esrl.envs import make_env  # noqa: E402
 from torchrl_esrl.collectors.es_collector import ESCollector  # noqa: E402
+from torchrl_esrl.es.openes import OpenES  # noqa: E402
 from torchrl_esrl.modules.networks import flat_parameters, make_actor  # noqa: E402
 from torchrl_esrl.collectors.ray_backend import member_shares  # noqa: E402
 
@@ -59,12 +60,19 @@ def test_ray_generation_equals_local_generation(cluster):
         assert len({n["NodeID"] for n in ray.nodes() if n["Alive"]}) == 3
         assert len(set(remote.backend.nodes())) == 2  # the two actors run on different nodes
         expected, got = local.evaluate(params), remote.evaluate(params)  # same seed stream, same seeds
+        es = OpenES(mean, population_size=36, sigma=0.3, generator=generator)  # 18 pairs: shares of 16 and 2 pairs
+        population, mirrored = es.ask(), es.mirrored()
+        pairs_expected, pairs_got = local.evaluate(population, mirrored=mirrored), remote.evaluate(population, mirrored=mirrored)
     finally:
         remote.backend.close()
+    assert not torch.equal(pairs_got.returns[:18], pairs_got.returns[18:])
+    for key in pairs_expected.transitions.keys(True, True):  # the pairs' generation, member order and ids included
+        assert torch.equal(pairs_got.transitions[key], pairs_expected.transitions[key]), key
+    assert torch.equal(pairs_got.returns, pairs_expected.returns) and torch.equal(pairs_got.lengths, pairs_expected.lengths)
     assert torch.equal(got.returns, expected.returns)
     assert torch.equal(got.lengths, expected.lengths)
     assert expected.lengths.unique().numel() > 1  # some members terminated early
-    assert remote.frames == local.frames == expected.frames
+    assert remote.frames == local.frames == expected.frames + pairs_expected.frames
     ids = got.transitions["collector", "traj_ids"]
     assert torch.equal(ids, expected.transitions["collector", "traj_ids"])
     assert ids.max().item() == 31 and (ids[1:] >= ids[:-1]).all()  # global member indices, member order

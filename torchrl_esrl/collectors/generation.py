@@ -32,6 +32,14 @@ class Generation:
         """Transition mask selecting the members where ``members[P]`` (bool) is True."""
         return members[self.transitions.get(("collector", "traj_ids"))]
 
+    def members(self, start: int, stop: int) -> Generation:
+        """Members ``start..stop-1`` as a Generation of their own (member indices from 0)."""
+        ends = torch.cumsum(self.lengths, 0)
+        first, last = (int(ends[start - 1]) if start else 0), (int(ends[stop - 1]) if stop else 0)
+        transitions = self.transitions[first:last]
+        transitions.set(("collector", "traj_ids"), transitions.get(("collector", "traj_ids")) - start)
+        return Generation(self.returns[start:stop], self.lengths[start:stop], transitions)
+
 
 def transitions_from_arrays(obs, actions, next_obs, rewards, terminated, truncated, lengths, returns) -> TensorDict:
     """Flatten padded ``[P, T, ...]`` numpy arrays into the TorchRL transition layout (real steps only)."""

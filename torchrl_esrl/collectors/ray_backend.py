@@ -6,10 +6,10 @@ population ``params[P, D]`` and its reset seeds into contiguous shares, one per 
 actor runs an ordinary *local* backend (``ray.worker_backend``: ``auto``, ``gym``,
 ``mujoco_batch``, ...) on its share, and the shares come back as :class:`Generation` s that are
 concatenated in member order. ``collector/traj_ids`` is shifted to global member indices, so
-the learner, its buffers and the ES update see exactly what a local backend would produce from
-the flat rows: with the same seeds the generation is identical (``tests/test_ray_backend.py``).
-The workers always evaluate the flat rows; a local ``mujoco_batch`` run given OpenAI-ES's
-mirrored pairs computes the same actions up to float32 rounding, not bit for bit.
+the learner, its buffers and the ES update see exactly what a local backend would produce:
+with the same seeds the generation is identical (``tests/test_ray_backend.py``). Given OpenAI-ES's
+mirrored pairs, the shares are shares of pairs (members k and P/2 + k on one worker), so each
+worker reads every pair's noise once per step as a local backend does.
 
 Ray has no notion of "evaluate this batched population function over rows" that keeps the
 member order and the TorchRL transition layout, hence this small hand-written scatter/gather.
@@ -49,8 +49,8 @@ class _RolloutWorker:
 
         return ray.get_runtime_context().get_node_id()
 
-    def rollout(self, params: torch.Tensor, seeds: list[int]) -> Generation:
-        return self.backend.rollout(params, seeds)
+    def rollout(self, params: torch.Tensor, seeds: list[int], mirrored: Mirrored | None = None) -> Generation:
+        return self.backend.rollout(params, seeds, mirrored=mirrored)
 
 
 # Shares start at multiples of this many members. Why: MKL's matrix-vector kernels round
@@ -147,9 +147,11 @@ class RayBackend:
         return ray.get([w.node.remote() for w in self.workers])
 
     def rollout(self, params: torch.Tensor, seeds: Sequence[int], mirrored: Mirrored | None = None) -> Generation:
-        """Shares of ``params`` on the workers, which evaluate the flat rows: ``mirrored`` is ignored
-        (a share holds no whole pairs), so actions equal a local mirrored forward's up to rounding."""
+        """Shares of ``params`` on the workers; with ``mirrored``, shares of its pairs."""
         import ray
+
+        if mirrored is not None:
+            return self._rollout_pairs(params, seeds, mirrored)
 
         seeds = [int(s) for s in seeds]
         futures = [
@@ -158,6 +160,23 @@ class RayBackend:
             if stop > start
         ]
         return concatenate_generations(ray.get(futures))
+
+    def _rollout_pairs(self, params: torch.Tensor, seeds: Sequence[int], mirrored: Mirrored) -> Generation:
+        """Each worker evaluates pairs ``[a, b)``: members ``a..b-1`` and ``K+a..K+b-1`` as a
+        population of its own; the halves come back in member order."""
+        import ray
+
+        seeds, pairs = [int(s) for s in seeds], mirrored.offsets.shape[0]
+        shares = [(a, b) for a, b in member_shares(pairs, len(self.workers)) if b > a]
+        futures = [
+            worker.rollout.remote(
+                torch.cat([params[a:b], params[pairs + a : pairs + b]]), seeds[a:b] + seeds[pairs + a : pairs + b],
+                Mirrored(mirrored.center, mirrored.offsets[a:b].contiguous()),
+            )
+            for worker, (a, b) in zip(self.workers, shares)
+        ]
+        parts = [(part, b - a) for part, (a, b) in zip(ray.get(futures), shares)]
+        return concatenate_generations([part.members(0, n) for part, n in parts] + [part.members(n, 2 * n) for part, n in parts])
 
     def close(self) -> None:
         """Stop the actors (and Ray itself if this backend started it)."""

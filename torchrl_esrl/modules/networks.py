@@ -165,23 +165,26 @@ class PopulationActor:
         is member ``center + offsets[k]``, row ``[1, k]`` member ``center - offsets[k]``.
 
         ``center_layers`` is :meth:`split` of the center as one row, ``offset_layers`` of the K
-        offsets. ``(c +- s_k) x = c x +- s_k x``: one matrix product of the shared center with all
-        2K observations, then one ``numpy.matmul`` over the pairs ([out, in] x [in, 2] each) that
-        reads each pair's offsets once for both members, half of what :meth:`__call__` reads.
-        Measured on the 2-core machine (60 pairs, HalfCheetah sizes, one thread): 0.8-1.2 ms
-        against 1.6-1.7 ms for :meth:`__call__` on the same members. The same actions up to
-        float32 rounding, not bit for bit: the sums are split differently (tests/test_networks.py).
-        Its matrix products go to numpy's BLAS: callers run it under :func:`one_blas_thread`.
+        offsets. ``(c +- s_k) x = c x +- s_k x``: per pair, one ``[out, in] x [in, 2]`` product with
+        the center (which stays in cache) and one with the pair's offsets, which are read once for
+        both members, half of what :meth:`__call__` reads. Every pair gets products of the same
+        shapes, so a block of pairs gets bit for bit the actions of all K (one product over all
+        2K observations would not: BLAS picks its kernel by size). Measured on the 2-core machine
+        (60 pairs, HalfCheetah sizes, one thread, in cache): 0.8-1.3 ms against 1.6-1.7 ms for
+        :meth:`__call__` on the same members. The same actions up to float32 rounding, not bit for
+        bit: the sums are split differently (tests/test_networks.py). Its matrix products go to
+        numpy's BLAS: callers run it under :func:`one_blas_thread`.
         """
         x = observations
-        pairs = x.shape[1]
         last = len(center_layers) - 1
         for i, ((center_weight, center_bias), (offset_weight, offset_bias)) in enumerate(zip(center_layers, offset_layers)):
-            shared = (x.reshape(2 * pairs, -1) @ center_weight[0].T + center_bias[0]).reshape(2, pairs, -1)
-            own = np.matmul(offset_weight, x.transpose(1, 2, 0))  # [K, out, 2]
-            shared[0] += own[..., 0] + offset_bias
-            shared[1] -= own[..., 1] + offset_bias
-            x = self.act(shared) if i < last else shared
+            pair_inputs = x.transpose(1, 2, 0)  # [K, in, 2]: each pair's two observations as columns
+            shared = np.matmul(center_weight[0], pair_inputs)  # [K, out, 2]
+            own = np.matmul(offset_weight, pair_inputs)
+            y = np.empty((2, x.shape[1], center_weight.shape[1]), dtype=np.float32)
+            np.add(shared[..., 0] + center_bias[0], own[..., 0] + offset_bias, out=y[0])
+            np.subtract(shared[..., 1] + center_bias[0], own[..., 1] + offset_bias, out=y[1])
+            x = self.act(y) if i < last else y
         return self._squash(x)
 
     def _squash(self, x: np.ndarray) -> np.ndarray:
