@@ -88,8 +88,8 @@ def load_flat_parameters(actor: nn.Module, vector: torch.Tensor) -> None:
 @dataclass(frozen=True)
 class Mirrored:
     """A population of mirrored pairs (the antithetic sampling of the paper's Section 5 and of
-    Salimans et al. 2017): member ``k`` is
-    ``center + offsets[k]`` and member ``K + k`` is ``center - offsets[k]``, K = ``len(offsets)``.
+    Salimans et al. 2017): member ``k`` is ``center + offsets[k]`` and member ``K + k`` is
+    ``center - offsets[k]``, K = ``len(offsets)``.
 
     What OpenAI-ES asks for (:meth:`torchrl_esrl.es.openes.OpenES.mirrored`), told to the
     evaluation backends so that each pair's offsets are read once per step for both members
