@@ -1,11 +1,12 @@
 import copy
 
 import numpy as np
+import pytest
 import torch
 from tensordict import TensorDict
 
 from torchrl_esrl.envs import make_env
-from torchrl_esrl.modules.networks import Mirrored, PopulationActor, flat_parameters, load_flat_parameters, make_actor
+from torchrl_esrl.modules.networks import Mirrored, PopulationActor, flat_parameters, load_flat_parameters, make_actor, one_blas_thread
 
 
 def test_actor_is_the_papers_2x256_tanh_network_within_bounds():
@@ -70,3 +71,17 @@ def test_mirrored_forward_gives_each_pair_the_actions_of_its_two_rows():
     for block in (slice(10, 20), slice(0, 2), slice(28, 30), slice(0, 16)):  # any block size: the same products per pair
         part = policy.mirrored(center_layers, policy.split(offsets[block]), observations.numpy().reshape(2, 30, 17)[:, block])
         assert np.array_equal(part, pairs[:, block]), block
+
+
+def test_one_blas_thread_holds_numpy_blas_at_one_thread_and_restores_it():
+    from threadpoolctl import threadpool_info
+
+    def openblas_threads():
+        return [lib["num_threads"] for lib in threadpool_info() if lib["internal_api"] == "openblas"]
+
+    before = openblas_threads()
+    if not before:
+        pytest.skip("numpy's BLAS is not OpenBLAS in this install")
+    with one_blas_thread():
+        assert all(n == 1 for n in openblas_threads())
+    assert openblas_threads() == before
