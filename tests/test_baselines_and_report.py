@@ -129,6 +129,11 @@ def test_report_table_matches_the_runs_and_writes_figures(runs, tmp_path):
     with (tmp_path / "runs.csv").open() as handle:  # one row per run, the numbers behind the table
         per_run = list(csv.DictReader(handle))
     assert len(per_run) == 9 and sorted(float(r["final_return"]) for r in per_run if r["algorithm"] == "td3") == sorted(finals)
+    for r in per_run:  # when TD3 started learning: the first metrics row that counts an update
+        rows = load(Path(r["dir"]))[0]
+        if "td3_updates" in rows[0]:
+            first = next((str(i + 1) for i, row in enumerate(rows) if row["td3_updates"]), "never")
+            assert r["first_td3_update"] == first and float(r["td3_updates"]) == rows[-1]["td3_updates"], r["dir"]
     markdown = (tmp_path / "results.md").read_text()
     assert "| HalfCheetah-v5 | TD3 | 2 |" in markdown and "| HalfCheetah-v5 | ES-TD3Buffers 0.5:0.2:0.3: its TD3 actor | 1 |" in markdown
     with (tmp_path / "improvement.csv").open() as handle:  # P(ES-TD3Buffers 0.5:0.2:0.3 > row), every other row

@@ -243,7 +243,17 @@ def write_improvement_table(rows: list[dict], out_dir: Path) -> tuple[Path, Path
     return csv_path, md_path
 
 
-RUN_COLUMNS = ("env", "algorithm", "ratio", "seed", "final_return", "final_td3_actor_return", "overwrites", "td3_frames", "es_frames", "wall_time_s", "dir")
+RUN_COLUMNS = ("env", "algorithm", "ratio", "seed", "final_return", "final_td3_actor_return", "overwrites", "td3_frames", "es_frames",
+               "td3_updates", "first_td3_update", "wall_time_s", "dir")
+
+
+def first_td3_update(metrics: list[dict]) -> int | str:
+    """The iteration (from 1) whose row first counts TD3 updates: when TD3 started learning,
+    which in ES-TD3Buffers waits for every buffer to hold K (Algorithm 1). ``"never"`` when no
+    row counts one; ``""`` for a run that logs no ``td3_updates``."""
+    if not metrics or "td3_updates" not in metrics[0]:
+        return ""
+    return next((i + 1 for i, row in enumerate(metrics) if row["td3_updates"]), "never")
 
 
 def write_runs_table(runs: list[dict], out_dir: Path) -> tuple[Path, Path]:
@@ -251,7 +261,8 @@ def write_runs_table(runs: list[dict], out_dir: Path) -> tuple[Path, Path]:
     rows = []
     for run in runs:
         s = run["summary"]
-        rows.append({**{key: s.get(key, "") for key in RUN_COLUMNS}, "ratio": ratio_text(s), "dir": str(run["dir"])})
+        rows.append({**{key: s.get(key, "") for key in RUN_COLUMNS}, "ratio": ratio_text(s), "dir": str(run["dir"]),
+                     "first_td3_update": first_td3_update(run["metrics"])})
     rows.sort(key=lambda r: (r["env"], r["algorithm"], r["ratio"], r["seed"]))
     csv_path, md_path = out_dir / "runs.csv", out_dir / "runs.md"
     _write_csv(csv_path, RUN_COLUMNS, rows)
@@ -260,15 +271,16 @@ def write_runs_table(runs: list[dict], out_dir: Path) -> tuple[Path, Path]:
         return f"{value:.{digits}f}" if isinstance(value, (int, float)) else "-"
 
     lines = [
-        "| env | algorithm | seed | final return | TD3 actor | overwrites | TD3 frames | ES frames | wall time (min) |",
-        "|---|---|---:|---:|---:|---:|---:|---:|---:|",
+        "| env | algorithm | seed | final return | TD3 actor | overwrites | TD3 frames | ES frames | TD3 updates | first TD3 update (iteration) | wall time (min) |",
+        "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
     ]
     for r in rows:
         overwrites = r["overwrites"] if r["overwrites"] != "" else "-"
         wall = number(r["wall_time_s"] / 60 if isinstance(r["wall_time_s"], (int, float)) else None)
         lines.append(
             f"| {r['env']} | {label(r['algorithm'], r['ratio'])} | {r['seed']} | {number(r['final_return'])} | "
-            f"{number(r['final_td3_actor_return'])} | {overwrites} | {r['td3_frames']} | {r['es_frames']} | {wall} |"
+            f"{number(r['final_td3_actor_return'])} | {overwrites} | {r['td3_frames']} | {r['es_frames']} | "
+            f"{r['td3_updates'] if r['td3_updates'] != '' else '-'} | {r['first_td3_update'] or '-'} | {wall} |"
         )
     md_path.write_text("\n".join(lines) + "\n")
     return csv_path, md_path
