@@ -65,11 +65,10 @@ def test_mirrored_forward_gives_each_pair_the_actions_of_its_two_rows():
     assert mirrored.matches(params) and not mirrored.matches(params.flip(0))
     observations = torch.randn(60, 17, generator=torch.Generator().manual_seed(2))
     policy = PopulationActor(actor)
-    center_layers, offset_layers = policy.split(center[None]), policy.split(offsets)
-    pairs = policy.mirrored(center_layers, offset_layers, observations.numpy().reshape(2, 30, 17))
+    pairs = policy.mirrored(*policy.split_pairs(mirrored), observations.numpy().reshape(2, 30, 17))
     torch.testing.assert_close(torch.from_numpy(pairs.reshape(60, -1)), policy(params, observations), rtol=1e-5, atol=1e-6)
     for block in (slice(10, 20), slice(0, 2), slice(28, 30), slice(0, 16)):  # any block size: the same products per pair
-        part = policy.mirrored(center_layers, policy.split(offsets[block]), observations.numpy().reshape(2, 30, 17)[:, block])
+        part = policy.mirrored(*policy.split_pairs(mirrored, block), observations.numpy().reshape(2, 30, 17)[:, block])
         assert np.array_equal(part, pairs[:, block]), block
 
 

@@ -52,7 +52,7 @@ class GymBackend:
         if mirrored is None:
             layers = self.policy.split(params)
         else:
-            center, offsets = self.policy.split(mirrored.center.reshape(1, -1)), self.policy.split(mirrored.offsets)
+            center, offsets = self.policy.split_pairs(mirrored)
         t = 0
         while active.any():
             # Finished members still get a (cheap) forward: slicing params would copy P x D floats.

@@ -170,8 +170,7 @@ class MujocoBatchBackend:
 
     def _mirrored_blocks(self, mirrored: Mirrored) -> list[tuple[slice, list, list]]:
         """The pair blocks of the mirrored forward, with the center's and the offsets' views."""
-        center = self.policy.split(mirrored.center.reshape(1, -1))
-        return [(block, center, self.policy.split(mirrored.offsets[block])) for block in self._blocks(mirrored.offsets.shape[0], 2)]
+        return [(block, *self.policy.split_pairs(mirrored, block)) for block in self._blocks(mirrored.offsets.shape[0], 2)]
 
     def _in_blocks(self, forward: Callable, blocks: list) -> None:
         """``forward(*block)`` for every block: the second on a worker thread during the first

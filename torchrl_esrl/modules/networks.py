@@ -151,6 +151,11 @@ class PopulationActor:
             offset += out_f
         return views
 
+    def split_pairs(self, mirrored: Mirrored, pairs: slice = slice(None)) -> tuple[list, list]:
+        """:meth:`split` of the center (as one row) and of the offsets of ``pairs``: the layer
+        views :meth:`mirrored` takes."""
+        return self.split(mirrored.center.reshape(1, -1)), self.split(mirrored.offsets[pairs])
+
     def __call__(self, params: torch.Tensor, observations: torch.Tensor, layers=None) -> torch.Tensor:
         layers = self.split(params) if layers is None else layers
         x = observations.detach().numpy()
@@ -165,8 +170,7 @@ class PopulationActor:
         """Actions [2, K, act] of mirrored pairs on their observations [2, K, obs]: row ``[0, k]``
         is member ``center + offsets[k]``, row ``[1, k]`` member ``center - offsets[k]``.
 
-        ``center_layers`` is :meth:`split` of the center as one row, ``offset_layers`` of the K
-        offsets. ``(c +- s_k) x = c x +- s_k x``: per pair, one ``[out, in] x [in, 2]`` product with
+        ``center_layers, offset_layers`` are :meth:`split_pairs` of the K pairs. ``(c +- s_k) x = c x +- s_k x``: per pair, one ``[out, in] x [in, 2]`` product with
         the center (which stays in cache) and one with the pair's offsets, which are read once for
         both members, half of what :meth:`__call__` reads. Every pair gets products of the same
         shapes, so a block of pairs gets bit for bit the actions of all K (one product over all
