@@ -304,3 +304,24 @@ def test_numpy_tanh_of_the_fused_loss_matches_torch_tanh_and_its_gradient():
         z = x.detach().clone()
         assert _tanh(z) is z
         torch.testing.assert_close(z, y_torch.detach(), rtol=0, atol=2e-7)
+
+
+def test_fused_loss_follows_a_loaded_state_dict():
+    """The fused losses look their tensors up once; loading a checkpoint (TorchRL copies into the
+    parameters in place) must still give the loaded learner's losses."""
+    import copy
+
+    from torchrl.data import Bounded
+
+    spec = Bounded(-torch.ones(6), torch.ones(6), shape=(6,))
+    batch = _random_transitions(64, 17, 6)
+    source, loaded = (TD3(make_actor(17, spec, (32, 32)), make_critic(17, 6, (32, 32)), spec) for _ in range(2))
+    for _ in range(3):
+        source.update(batch)
+        loaded.update(batch)
+    loaded.load_state_dict(copy.deepcopy(source.state_dict()))
+    results = []
+    for td3 in (source, loaded):
+        torch.manual_seed(5)
+        results.append((td3.loss.value_loss(batch)[0].item(), td3.loss.actor_loss(batch)[0].item(), td3.update(batch)))
+    assert results[0] == results[1]

@@ -6,6 +6,8 @@ the policy delay; :func:`torchrl_esrl.algorithm.td3_phase.td3_phase` runs it ins
 """
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import torch
 from torch import nn
@@ -114,6 +116,9 @@ class FusedTD3Loss(TD3LossQ1Actor):
     """
 
     def _fused_layout(self):
+        """The networks as lists of ``(weight, bias, activation)`` tensors, built once (TorchRL
+        keeps the parameters in place for the life of the loss, as :class:`ForeachSoftUpdate`
+        relies on too), or False when the networks are not the plain MLPs this path handles."""
         layout = self.__dict__.get("_fused")
         if layout is None:
             layout = False
@@ -131,34 +136,36 @@ class FusedTD3Loss(TD3LossQ1Actor):
                 actor_mlp = _plain_mlp(actor.module[0].module)
                 critic_mlp = _plain_mlp(getattr(critic, "module", None))
                 if actor_mlp and critic_mlp and list(critic.in_keys) == ["observation", "action"] and len(critic.out_keys) == 1:
-                    layout = (actor_mlp, critic_mlp)
+                    layout = _FusedLayout(self, actor_mlp, critic_mlp)
             self.__dict__["_fused"] = layout
         return layout
 
-    def value_loss(self, tensordict) -> tuple[torch.Tensor, dict]:
+    def value_loss(self, tensordict, *, metadata: bool = True) -> tuple[torch.Tensor, dict]:
+        """TD3Loss's critic loss; ``metadata=False`` skips the metadata tensors (TD3.update has no use for them)."""
         layout = self._fused_layout()
         if not layout or loss_priority_weight(self, tensordict) is not None:
             return super().value_loss(tensordict)
-        actor_mlp, critic_mlp = layout
         action = tensordict.get(self.tensor_keys.action)
         noise = (torch.randn_like(action) * self.policy_noise).clamp(-self.noise_clip, self.noise_clip)  # drawn first, as TD3Loss
         with torch.no_grad():
-            x = self._actor(self.target_actor_network_params, actor_mlp, tensordict.get(("next", "observation")))
+            next_observation = tensordict.get(("next", "observation"))
+            x = self._actor(layout.target_actor, layout.target_bounds, next_observation)
             next_action = (x + noise).clamp(self.min_action, self.max_action)
-            next_q = self._twin_critics(self.target_qvalue_network_params, critic_mlp, tensordict.get(("next", "observation")), next_action)
+            next_q = self._twin_critics(layout.target_critics, next_observation, next_action)
             next_value = next_q.min(0)[0].unsqueeze(-1)
             reward = tensordict.get(("next", "reward"))
             terminated = tensordict.get(("next", "terminated"), default=tensordict.get(("next", "done")))
             target_value = (reward + self.value_estimator.gamma * (~terminated).int() * next_value).squeeze(-1)
-        current_qvalue = self._twin_critics(self.qvalue_network_params, critic_mlp, tensordict.get("observation"), action)
+        current_qvalue = self._twin_critics(layout.critics, tensordict.get("observation"), action)
         loss_qval = (current_qvalue - target_value).pow(2).sum(0).mean()
-        metadata = {
+        if not metadata:
+            return loss_qval, {}
+        return loss_qval, {
             "td_error": (current_qvalue.detach() - target_value).pow(2),
             "next_state_value": next_value.squeeze(-1),
             "pred_value": current_qvalue.detach(),
             "target_value": target_value,
         }
-        return loss_qval, metadata
 
     def actor_loss(self, tensordict) -> tuple[torch.Tensor, dict]:
         """``-Q_1(s, pi(s)).mean()`` as :class:`TD3LossQ1Actor`, with the actor and the first
@@ -166,39 +173,56 @@ class FusedTD3Loss(TD3LossQ1Actor):
         layout = self._fused_layout()
         if not layout or loss_priority_weight(self, tensordict) is not None:
             return super().actor_loss(tensordict)
-        actor_mlp, critic_mlp = layout
         observation = tensordict.get("observation")
-        action = self._actor(self.actor_network_params, actor_mlp, observation)
-        critic = detached_qvalue_params(self)
-        x = torch.cat([observation, action], -1)
-        for name, act in critic_mlp:
-            x = torch.addmm(critic.get(("module", name, "bias"))[0], x, critic.get(("module", name, "weight"))[0].t())
+        x = torch.cat([observation, self._actor(layout.actor, layout.bounds, observation)], -1)
+        for weight_t, bias, act in layout.critic1:
+            x = torch.addmm(bias, x, weight_t)
             if act is not None:
                 x = act(x)
         state_action_value = x.squeeze(-1)
         return -state_action_value.mean(), {"state_action_value_actor": state_action_value.detach()}
 
-    def _actor(self, params, actor_mlp, observation) -> torch.Tensor:
-        """The actor (MLP + ``TanhModule``) with ``params`` (online or target), as its modules compute it."""
+    def _actor(self, layers, bounds, observation) -> torch.Tensor:
+        """The actor (MLP + ``TanhModule``) with the online or target ``layers``, as its modules compute it."""
         x = observation
-        for name, act in actor_mlp:
-            x = torch.addmm(params.get(("module", "0", "module", name, "bias")), x, params.get(("module", "0", "module", name, "weight")).t())
+        for weight, bias, act in layers:
+            x = torch.addmm(bias, x, weight.t())
             if act is not None:
                 x = act(x)
-        bounds = params.get(("module", "1", "action_low")), params.get(("module", "1", "action_high"))
         return squash(self.actor_network.module[1], x, *bounds)
 
     @staticmethod
-    def _twin_critics(params, critic_mlp, observation, action) -> torch.Tensor:
+    def _twin_critics(layers, observation, action) -> torch.Tensor:
         """``[2, B]`` values of the stacked critics: one ``baddbmm`` per layer."""
-        x = torch.cat([observation, action], -1).expand(params.batch_size[0], *observation.shape[:-1], -1)
-        for name, act in critic_mlp:
-            weight = params.get(("module", name, "weight"))  # [2, out, in]
-            bias = params.get(("module", name, "bias"))  # [2, out]
+        x = torch.cat([observation, action], -1)
+        x = x.expand(2, *x.shape)
+        for weight, bias, act in layers:  # weight [2, out, in], bias [2, out]
             x = torch.baddbmm(bias.unsqueeze(1), x, weight.transpose(1, 2))
             if act is not None:
                 x = act(x)
         return x.squeeze(-1)
+
+
+class _FusedLayout:
+    """The tensors :class:`FusedTD3Loss` computes with, looked up once instead of ~30 TensorDict
+    lookups per update: ``(weight, bias, activation)`` per layer of the online and target actor
+    and twin critics, the first critic's detached weights transposed for the actor loss, and
+    the action bounds of both actors."""
+
+    def __init__(self, loss: TD3Loss, actor_mlp, critic_mlp):
+        def layers(params, prefix, mlp):
+            return [(params.get((*prefix, name, "weight")), params.get((*prefix, name, "bias")), act) for name, act in mlp]
+
+        actor_prefix = ("module", "0", "module")
+        self.actor = layers(loss.actor_network_params, actor_prefix, actor_mlp)
+        self.target_actor = layers(loss.target_actor_network_params, actor_prefix, actor_mlp)
+        self.bounds, self.target_bounds = (
+            (params.get(("module", "1", "action_low")), params.get(("module", "1", "action_high")))
+            for params in (loss.actor_network_params, loss.target_actor_network_params)
+        )
+        self.critics = layers(loss.qvalue_network_params, ("module",), critic_mlp)
+        self.target_critics = layers(loss.target_qvalue_network_params, ("module",), critic_mlp)
+        self.critic1 = [(weight.detach()[0].t(), bias.detach()[0], act) for weight, bias, act in self.critics]
 
 
 class ForeachSoftUpdate(SoftUpdate):
@@ -297,23 +321,23 @@ class TD3:
 
     def update(self, batch: TensorDictBase) -> dict[str, float]:
         """One TD3 step: critic update; every ``policy_delay`` steps actor and target updates."""
-        critic_loss, _ = self.loss.value_loss(batch)
-        if not torch.isfinite(critic_loss):
-            raise FloatingPointError(f"TD3 critic loss is {critic_loss.item()} at update {self.updates}")
+        critic_loss, _ = self.loss.value_loss(batch, metadata=False) if self.fast else self.loss.value_loss(batch)
+        out = {"critic_loss": critic_loss.item()}
+        if not math.isfinite(out["critic_loss"]):
+            raise FloatingPointError(f"TD3 critic loss is {out['critic_loss']} at update {self.updates}")
         self.critic_optimizer.zero_grad(set_to_none=True)
         critic_loss.backward()
         self.critic_optimizer.step()
         self.updates += 1
-        out = {"critic_loss": critic_loss.item()}
         if self.updates % self.policy_delay == 0:
             actor_loss, _ = self.loss.actor_loss(batch)
-            if not torch.isfinite(actor_loss):
-                raise FloatingPointError(f"TD3 actor loss is {actor_loss.item()} at update {self.updates}")
+            out["actor_loss"] = actor_loss.item()
+            if not math.isfinite(out["actor_loss"]):
+                raise FloatingPointError(f"TD3 actor loss is {out['actor_loss']} at update {self.updates}")
             self.actor_optimizer.zero_grad(set_to_none=True)
             actor_loss.backward()
             self.actor_optimizer.step()
             self.target_update.step()
-            out["actor_loss"] = actor_loss.item()
         return out
 
     def state_dict(self) -> dict:
