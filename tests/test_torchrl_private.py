@@ -175,3 +175,34 @@ def test_gym_env_of_unwraps_transformed_envs(env):
     gym_env = torchrl_private.gym_env_of(env)
     assert isinstance(gym_env, gymnasium.Env)
     assert gym_env.unwrapped.spec.id == "Pendulum-v1"
+
+
+def test_fused_adam_step_is_optimizer_step():
+    """The direct fused-Adam call gives Optimizer.step's parameters and state bit for bit, also
+    after a load_state_dict (which replaces the state tensors) and with weight decay."""
+    import copy
+
+    torch.manual_seed(0)
+    nets = [torch.nn.Sequential(torch.nn.Linear(5, 16), torch.nn.Tanh(), torch.nn.Linear(16, 3)) for _ in range(2)]
+    nets[1].load_state_dict(nets[0].state_dict())
+    optimizers = [torch.optim.Adam(net.parameters(), lr=1e-2, weight_decay=1e-3, fused=True) for net in nets]
+    x = torch.randn(32, 5)
+
+    def steps(n):
+        for _ in range(n):
+            for net, optimizer, step in zip(nets, optimizers, (lambda o: o.step(), torchrl_private.fused_adam_step)):
+                optimizer.zero_grad(set_to_none=True)
+                net(x).pow(2).mean().backward()
+                step(optimizer)
+
+    steps(4)
+    saved = copy.deepcopy(optimizers[0].state_dict())
+    steps(3)
+    for optimizer in optimizers:
+        optimizer.load_state_dict(copy.deepcopy(saved))
+    steps(3)
+    for a, b in zip(nets[0].parameters(), nets[1].parameters()):
+        assert torch.equal(a, b)
+        for key in ("exp_avg", "exp_avg_sq", "step"):
+            assert torch.equal(optimizers[0].state[a][key], optimizers[1].state[b][key])
+    assert optimizers[1].state[next(nets[1].parameters())]["step"].item() == 7  # 4, back to 4 on loading, 3 more
