@@ -165,7 +165,8 @@ def test_q1_actor_loss_gradient_equals_td3loss():
     grads, values = [], []
     for cls in (TD3Loss, TD3LossQ1Actor, FusedTD3Loss):
         torch.manual_seed(1)
-        loss = cls(actor_network=actor, qvalue_network=critic, action_spec=spec, num_qvalue_nets=2)
+        loss = cls(actor_network=actor, qvalue_network=critic, action_spec=spec, num_qvalue_nets=2, loss_function="l2")
+        assert cls is not FusedTD3Loss or loss._fused_layout(), "the fused path must be the one under test"
         loss_actor, _ = loss.actor_loss(batch)
         actor.zero_grad()
         loss_actor.backward()
@@ -193,8 +194,9 @@ def test_fused_value_loss_equals_td3loss():
     results = []
     for cls in (TD3Loss, FusedTD3Loss):
         torch.manual_seed(1)
-        loss = cls(actor_network=actor, qvalue_network=critic, action_spec=spec, num_qvalue_nets=2, delay_actor=True, delay_qvalue=True)
+        loss = cls(actor_network=actor, qvalue_network=critic, action_spec=spec, num_qvalue_nets=2, delay_actor=True, delay_qvalue=True, loss_function="l2")
         loss.make_value_estimator(gamma=0.97)
+        assert cls is TD3Loss or loss._fused_layout(), "the fused path must be the one under test"
         torch.manual_seed(2)
         with torch.no_grad():
             for target in (loss.target_actor_network_params, loss.target_qvalue_network_params):
@@ -325,3 +327,46 @@ def test_fused_loss_follows_a_loaded_state_dict():
         torch.manual_seed(5)
         results.append((td3.loss.value_loss(batch)[0].item(), td3.loss.actor_loss(batch)[0].item(), td3.update(batch)))
     assert results[0] == results[1]
+
+
+@pytest.mark.parametrize("activation", ["relu", "tanh"])
+def test_value_loss_backward_equals_td3loss_backward(activation):
+    """FusedTD3Loss.value_loss_backward (loss and critic gradients by the chain rule, no autograd)
+    against stock TD3Loss.value_loss + backward: same loss, same gradients, with targets
+    differing from the online networks, non-unit bounds and terminated transitions."""
+    from torchrl.data import Bounded
+    from torchrl.objectives import TD3Loss
+
+    from torchrl_esrl.objectives.td3 import FusedTD3Loss
+
+    torch.manual_seed(0)
+    spec = Bounded(-2 * torch.ones(6), torch.linspace(0.5, 3.0, 6), shape=(6,))
+    actor, critic = make_actor(17, spec), make_critic(17, 6, activation=activation)
+    batch = _random_transitions(200, 17, 6)
+    batch["next", "terminated"][::7] = True
+    results = []
+    for cls in (TD3Loss, FusedTD3Loss):
+        torch.manual_seed(1)
+        loss = cls(actor_network=actor, qvalue_network=critic, action_spec=spec, num_qvalue_nets=2, delay_actor=True, delay_qvalue=True, loss_function="l2")
+        loss.make_value_estimator(gamma=0.97)
+        assert cls is TD3Loss or loss._fused_layout(), "the fused path must be the one under test"
+        torch.manual_seed(2)
+        with torch.no_grad():
+            for target in (loss.target_actor_network_params, loss.target_qvalue_network_params):
+                for key, value in target.items(True, True):
+                    if "action_" not in str(key):
+                        value.add_(0.05 * torch.randn_like(value))
+        torch.manual_seed(3)
+        if cls is TD3Loss:
+            value, _ = loss.value_loss(batch)
+            value.backward()
+        else:
+            value = loss.value_loss_backward(batch)
+            assert value is not None and value.grad_fn is None
+        results.append((value.detach(), [p.grad.clone() for p in loss.qvalue_network_params.values(True, True)]))
+    (stock_value, stock_grads), (fused_value, fused_grads) = results
+    torch.testing.assert_close(fused_value, stock_value)
+    assert len(stock_grads) == len(fused_grads) == 6
+    for a, b in zip(stock_grads, fused_grads):
+        assert a.shape == b.shape and a.abs().sum() > 0
+        torch.testing.assert_close(b, a, rtol=1e-5, atol=1e-6)
