@@ -370,3 +370,38 @@ def test_value_loss_backward_equals_td3loss_backward(activation):
     for a, b in zip(stock_grads, fused_grads):
         assert a.shape == b.shape and a.abs().sum() > 0
         torch.testing.assert_close(b, a, rtol=1e-5, atol=1e-6)
+
+
+@pytest.mark.parametrize("bounds", ["unit", "other"])
+def test_actor_loss_backward_equals_td3loss_backward(bounds):
+    """FusedTD3Loss.actor_loss_backward (by the chain rule, no autograd) against stock
+    TD3Loss.actor_loss + backward: same loss, same actor gradients, critics left without any."""
+    from torchrl.data import Bounded
+    from torchrl.objectives import TD3Loss
+
+    from torchrl_esrl.objectives.td3 import FusedTD3Loss
+
+    torch.manual_seed(0)
+    low, high = (-torch.ones(6), torch.ones(6)) if bounds == "unit" else (-2 * torch.ones(6), torch.linspace(0.5, 3.0, 6))
+    spec = Bounded(low, high, shape=(6,))
+    actor, critic = make_actor(17, spec), make_critic(17, 6)
+    batch = _random_transitions(200, 17, 6)
+    results = []
+    for cls in (TD3Loss, FusedTD3Loss):
+        torch.manual_seed(1)  # the loss draws its critics' parameters
+        loss = cls(actor_network=actor, qvalue_network=critic, action_spec=spec, num_qvalue_nets=2, loss_function="l2")
+        actor.zero_grad(set_to_none=True)
+        if cls is TD3Loss:
+            value, _ = loss.actor_loss(batch)
+            value.backward()
+        else:
+            assert loss._fused_layout(), "the fused path must be the one under test"
+            value = loss.actor_loss_backward(batch)
+            assert all(p.grad is None for p in loss.qvalue_network_params.values(True, True))
+        results.append((value.detach(), [p.grad.clone() for p in actor.parameters()]))
+    (stock_value, stock_grads), (fused_value, fused_grads) = results
+    torch.testing.assert_close(fused_value, stock_value)
+    assert len(stock_grads) == len(fused_grads) == 6
+    for a, b in zip(stock_grads, fused_grads):
+        assert a.abs().sum() > 0
+        torch.testing.assert_close(b, a, rtol=1e-5, atol=1e-7)

@@ -226,6 +226,57 @@ class FusedTD3Loss(TD3LossQ1Actor):
         state_action_value = x.squeeze(-1)
         return -state_action_value.mean(), {"state_action_value_actor": state_action_value.detach()}
 
+    def actor_loss_backward(self, tensordict) -> torch.Tensor | None:
+        """``actor_loss`` and its backward in one pass, without autograd, as
+        :meth:`value_loss_backward`: sets the actor's ``.grad`` and returns the loss (None where
+        the fused path does not apply). From ``dL/dQ_1 = -1/B`` the gradient runs back through the
+        first critic (its weights only carry it: they are not trained by this loss) to the action,
+        through ``TanhModule``'s squashing, then through the actor's layers.
+        tests/test_td3.py compares loss and gradients with stock ``TD3Loss.actor_loss``.
+        """
+        layout = self._fused_layout()
+        if not layout or loss_priority_weight(self, tensordict) is not None:
+            return None
+        tanh_module = self.actor_network.module[1]
+        with torch.no_grad():
+            observation = tensordict.get("observation")
+            actor_inputs, x = [], observation
+            for weight, bias, act in layout.actor:
+                actor_inputs.append(x)
+                x = torch.addmm(bias, x, weight.t())
+                if act is not None:
+                    x = act(x)
+            squashed = x.tanh()  # squash(), step by step: its backward needs each step
+            low, high = layout.bounds
+            eps = torch.finfo(squashed.dtype).resolution
+            clamped = squashed.clamp(-1 + eps, 1 - eps) if tanh_module.clamp else squashed
+            action = low + (high - low) * (clamped + 1) / 2 if tanh_module.non_trivial else clamped
+            critic_inputs, x = [], torch.cat([observation, action], -1)
+            for weight_t, bias, act in layout.critic1:
+                critic_inputs.append(x)
+                x = torch.addmm(bias, x, weight_t)
+                if act is not None:
+                    x = act(x)
+            loss = -x.squeeze(-1).mean()
+            grad = torch.full_like(x, -1.0 / x.shape[0])  # dL/dQ_1
+            for index in range(len(critic_inputs) - 1, -1, -1):
+                grad = torch.mm(grad, layout.critic1[index][0].t())
+                if index:
+                    grad = _ACTIVATION_BACKWARD[layout.critic1[index - 1][2]](grad, critic_inputs[index])
+            grad = grad[:, observation.shape[-1]:]  # dL/d action
+            if tanh_module.non_trivial:
+                grad = grad / 2 * (high - low)
+            if tanh_module.clamp:
+                grad = torch.where((squashed >= -1 + eps) & (squashed <= 1 - eps), grad, 0.0)
+            grad = torch.ops.aten.tanh_backward(grad, squashed)
+            for index in range(len(actor_inputs) - 1, -1, -1):
+                weight, bias, act = layout.actor[index]
+                weight.grad = torch.mm(grad.t(), actor_inputs[index])
+                bias.grad = grad.sum(0)
+                if index:
+                    grad = _ACTIVATION_BACKWARD[layout.actor[index - 1][2]](torch.mm(grad, weight), actor_inputs[index])
+        return loss
+
     def _actor(self, layers, bounds, observation) -> torch.Tensor:
         """The actor (MLP + ``TanhModule``) with the online or target ``layers``, as its modules compute it."""
         x = observation
@@ -376,12 +427,14 @@ class TD3:
         self._step(self.critic_optimizer)
         self.updates += 1
         if self.updates % self.policy_delay == 0:
-            actor_loss, _ = self.loss.actor_loss(batch)
+            self.actor_optimizer.zero_grad(set_to_none=True)
+            actor_loss = self.loss.actor_loss_backward(batch) if self.fast else None
+            if actor_loss is None:
+                actor_loss, _ = self.loss.actor_loss(batch)
+                actor_loss.backward()
             out["actor_loss"] = actor_loss.item()
             if not math.isfinite(out["actor_loss"]):
                 raise FloatingPointError(f"TD3 actor loss is {out['actor_loss']} at update {self.updates}")
-            self.actor_optimizer.zero_grad(set_to_none=True)
-            actor_loss.backward()
             self._step(self.actor_optimizer)
             self.target_update.step()
         return out
