@@ -19,8 +19,10 @@ taking turns with the tuned configuration within every round, the reference conf
 ``td3.fast=false`` (stock ``TD3Loss`` + ``SoftUpdate`` + default Adam, TorchRL ``Collector``),
 ``td3.num_threads=null`` (the process's threads), buffer writes through TorchRL's ``extend``
 (``direct_writes=False``), the ES forward over the flat rows on one thread; each part's ratio
-is reported.
-Usage: ``python -m benchmarks.iteration [--quick] [--compare] [--env halfcheetah] [--out PATH]``.
+is reported. ``--plain`` also times, interleaved with the loop's updates and sampling the same
+buffer, the plain PyTorch TD3 update of ``benchmarks.td3_update`` on 1 and on 2 threads: the
+update goal (>= 1.2x the best plain one) measured inside the loop.
+Usage: ``python -m benchmarks.iteration [--quick] [--compare] [--plain] [--env halfcheetah] [--out PATH]``.
 """
 from __future__ import annotations
 
@@ -32,6 +34,7 @@ from pathlib import Path
 
 from benchmarks.common import fill, save_report  # sets OMP_WAIT_POLICY, first
 
+import torch
 from omegaconf import OmegaConf
 
 from torchrl_esrl.envs import quiet_logs
@@ -81,6 +84,7 @@ class Setup:
         self.cpu_seconds: dict[str, list[float]] = {}  # the same in process CPU time (all threads)
         self._cpu_start = 0.0
         self.env_steps_per_generation = 0
+        self.plain_seconds: dict[int, list[float]] = {}  # torch threads -> plain TD3 seconds per update, per round
 
     def record(self, part: str, seconds: float, units: int) -> None:
         """Wall seconds of ``part`` per unit, and the process CPU time since the part's
@@ -137,6 +141,24 @@ class Setup:
                 self.td3.update(self.buffer.sample())
         self.record("td3_updates", time.perf_counter() - start, count)
 
+    def plain_updates(self, count: int, threads: int) -> None:
+        """The plain PyTorch TD3 update (``benchmarks.td3_update.PlainTD3``) on ``threads`` torch
+        threads, sampling this setup's buffer: the baseline of the update goal, timed inside the
+        same process and rounds as the loop's own updates (not part of the iteration)."""
+        from benchmarks.td3_update import PlainTD3
+
+        plain = self.__dict__.get(f"_plain_{threads}")
+        with torch_threads(threads):
+            if plain is None:
+                torch.manual_seed(0)
+                plain = self.__dict__[f"_plain_{threads}"] = PlainTD3(self.obs_dim, self.act_dim)
+                for _ in range(10):
+                    plain.update(self.buffer.sample())
+            start = time.perf_counter()
+            for _ in range(count):
+                plain.update(self.buffer.sample())
+        self.plain_seconds.setdefault(threads, []).append((time.perf_counter() - start) / count)
+
     def evaluations(self) -> None:
         self.start_cpu()
         start = time.perf_counter()
@@ -170,9 +192,10 @@ class Setup:
 
 
 def run(env: str = "halfcheetah", frames: int = 2000, generations: int = 2, capacity: int | None = None,
-        compare: bool = False, rounds: int = 3, td3_threads: int | None = None) -> dict:
+        compare: bool = False, rounds: int = 3, td3_threads: int | None = None, plain: bool = False) -> dict:
     """Each part measured in ``rounds`` rounds (medians); with ``compare``, the reference
-    configuration and the tuned one take turns within every round."""
+    configuration and the tuned one take turns within every round; with ``plain``, so does the
+    plain PyTorch TD3 update on 1 and on 2 threads, sampling the tuned setup's buffer."""
     quiet_logs()
     setups = ([Setup(env, capacity, reference=True)] if compare else []) + [Setup(env, capacity, reference=False, td3_threads=td3_threads)]
     for _ in range(rounds):
@@ -186,6 +209,8 @@ def run(env: str = "halfcheetah", frames: int = 2000, generations: int = 2, capa
     for _ in range(rounds):
         for s in setups:
             s.updates(max(1, frames // rounds))
+        for threads in (1, 2) if plain else ():
+            setups[-1].plain_updates(max(1, frames // rounds), threads)
     for s in setups:
         s.evaluations()
     for s in setups:
@@ -194,6 +219,11 @@ def run(env: str = "halfcheetah", frames: int = 2000, generations: int = 2, capa
     report["measured"] = {"frames": frames, "updates": frames, "generations": generations, "rounds": rounds}
     if compare:
         report["reference"] = setups[0].report()
+    if plain:
+        seconds = {threads: statistics.median(rounds_s) for threads, rounds_s in setups[-1].plain_seconds.items()}
+        ratio = min(seconds.values()) / report["parts"]["td3_updates"]["s_per"]
+        report["plain_td3"] = {"s_per_update": seconds, "rounds_s_per_update": setups[-1].plain_seconds,
+                               "tuned_vs_best_plain": ratio, "goal": "TD3 updates in the loop >= 1.2x the best plain PyTorch update", "met": ratio >= 1.2}
     return report
 
 
@@ -206,10 +236,11 @@ def main(argv=None) -> dict:
     parser.add_argument("--compare", action="store_true", help="also time the reference configuration, interleaved, same process")
     parser.add_argument("--rounds", type=int, default=3, help="rounds per part (medians reported)")
     parser.add_argument("--td3-threads", type=int, default=None, help="td3.num_threads of the tuned configuration (default: conf/config.yaml's)")
+    parser.add_argument("--plain", action="store_true", help="also time the plain PyTorch TD3 update (1 and 2 threads), interleaved with the loop's updates")
     parser.add_argument("--out", default="benchmarks/results/iteration.json")
     args = parser.parse_args(argv)
     frames, generations = args.frames or (500 if args.quick else 2000), args.generations or (1 if args.quick else 2)
-    report = run(args.env, frames, generations, compare=args.compare, rounds=args.rounds, td3_threads=args.td3_threads)
+    report = run(args.env, frames, generations, compare=args.compare, rounds=args.rounds, td3_threads=args.td3_threads, plain=args.plain)
     reference = report.get("reference")
     for name, p in report["parts"].items():
         ratio = f"  {reference['parts'][name]['s_per'] / p['s_per']:5.2f}x reference" if reference else ""
@@ -218,6 +249,10 @@ def main(argv=None) -> dict:
     print(f"process CPU time: iteration {report['cpu_iteration_s']:.0f} s, {report['iterations']} iterations {report['cpu_run_h']:.2f} h (core-hours; ~wall for the 1-thread TD3 parts on a quiet machine)")
     if reference:
         print(f"reference configuration: iteration {reference['iteration_s']:.0f} s, {reference['run_h']:.2f} h; tuned {reference['iteration_s'] / report['iteration_s']:.2f}x faster")
+    if "plain_td3" in report:
+        plain = report["plain_td3"]
+        print("plain PyTorch TD3 update: " + ", ".join(f"{t} thread(s) {v * 1e3:.2f} ms" for t, v in plain["s_per_update"].items())
+              + f"; the loop's updates {plain['tuned_vs_best_plain']:.2f}x the best (goal >= 1.2x: {'met' if plain['met'] else 'not met'})")
     save_report(report, args.out)
     return report
 
