@@ -193,16 +193,7 @@ def test_fused_value_loss_equals_td3loss():
     batch["next", "terminated"][::5] = True
     results = []
     for cls in (TD3Loss, FusedTD3Loss):
-        torch.manual_seed(1)
-        loss = cls(actor_network=actor, qvalue_network=critic, action_spec=spec, num_qvalue_nets=2, delay_actor=True, delay_qvalue=True, loss_function="l2")
-        loss.make_value_estimator(gamma=0.97)
-        assert cls is TD3Loss or loss._fused_layout(), "the fused path must be the one under test"
-        torch.manual_seed(2)
-        with torch.no_grad():
-            for target in (loss.target_actor_network_params, loss.target_qvalue_network_params):
-                for key, value in target.items(True, True):
-                    if "action_" not in str(key):
-                        value.add_(0.05 * torch.randn_like(value))
+        loss = _loss_with_moved_targets(cls, actor, critic, spec)
         torch.manual_seed(3)
         value, metadata = loss.value_loss(batch)
         value.backward()
@@ -216,6 +207,24 @@ def test_fused_value_loss_equals_td3loss():
         torch.testing.assert_close(fused_meta[key], stock_meta[key])
     for a, b in zip(stock_grads, fused_grads):
         torch.testing.assert_close(b, a, rtol=1e-5, atol=1e-7)
+
+
+def _loss_with_moved_targets(cls, actor, critic, spec):
+    """A TD3 loss (stock or fused, same seeded critics) whose target networks differ from the
+    online ones, so that a mix-up of the two shows in the critic loss."""
+    from torchrl.objectives import TD3Loss
+
+    torch.manual_seed(1)
+    loss = cls(actor_network=actor, qvalue_network=critic, action_spec=spec, num_qvalue_nets=2, delay_actor=True, delay_qvalue=True, loss_function="l2")
+    loss.make_value_estimator(gamma=0.97)
+    assert cls is TD3Loss or loss._fused_layout(), "the fused path must be the one under test"
+    torch.manual_seed(2)
+    with torch.no_grad():
+        for target in (loss.target_actor_network_params, loss.target_qvalue_network_params):
+            for key, value in target.items(True, True):
+                if "action_" not in str(key):
+                    value.add_(0.05 * torch.randn_like(value))
+    return loss
 
 
 def _random_transitions(n, obs_dim, act_dim):
@@ -346,16 +355,7 @@ def test_value_loss_backward_equals_td3loss_backward(activation):
     batch["next", "terminated"][::7] = True
     results = []
     for cls in (TD3Loss, FusedTD3Loss):
-        torch.manual_seed(1)
-        loss = cls(actor_network=actor, qvalue_network=critic, action_spec=spec, num_qvalue_nets=2, delay_actor=True, delay_qvalue=True, loss_function="l2")
-        loss.make_value_estimator(gamma=0.97)
-        assert cls is TD3Loss or loss._fused_layout(), "the fused path must be the one under test"
-        torch.manual_seed(2)
-        with torch.no_grad():
-            for target in (loss.target_actor_network_params, loss.target_qvalue_network_params):
-                for key, value in target.items(True, True):
-                    if "action_" not in str(key):
-                        value.add_(0.05 * torch.randn_like(value))
+        loss = _loss_with_moved_targets(cls, actor, critic, spec)
         torch.manual_seed(3)
         if cls is TD3Loss:
             value, _ = loss.value_loss(batch)

@@ -354,7 +354,8 @@ class TD3:
         exploration_noise: std of the Gaussian noise added to actions when acting (paper: 0.1).
         loss_function: critic regression loss (``"l2"`` as in Fujimoto's TD3).
         fast: the tuned configuration measured by ``benchmarks/td3_update.py`` (default):
-            :class:`TD3LossQ1Actor` (actor loss through the first critic only),
+            :class:`FusedTD3Loss` (stacked twin critics, actor loss through the first critic
+            only, loss and gradients of both steps in one pass without autograd),
             :class:`ForeachSoftUpdate` and fused Adam. ``False`` gives TorchRL's stock
             ``TD3Loss`` + ``SoftUpdate`` + default Adam; both compute TD3's math (same losses,
             gradients and target updates, tests/test_td3.py).
