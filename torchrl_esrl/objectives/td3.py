@@ -178,22 +178,10 @@ class FusedTD3Loss(TD3LossQ1Actor):
         action = tensordict.get(self.tensor_keys.action)
         target_value, _ = self._target_value(layout, tensordict, action)
         with torch.no_grad():
-            x = torch.cat([tensordict.get("observation"), action], -1)
-            inputs, x = [], x.expand(2, *x.shape)
-            for weight, bias, act in layout.critics:
-                inputs.append(x)
-                x = torch.baddbmm(bias.unsqueeze(1), x, weight.transpose(1, 2))
-                if act is not None:
-                    x = act(x)
-            error = x.squeeze(-1) - target_value  # [2, B]
+            inputs = []
+            error = self._twin_critics(layout.critics, tensordict.get("observation"), action, inputs) - target_value  # [2, B]
             loss = error.pow(2).sum(0).mean()
-            grad = (error * (2.0 / error.shape[-1])).unsqueeze(-1)  # dL/dQ, [2, B, 1]
-            for index in range(len(inputs) - 1, -1, -1):
-                weight, bias, act = layout.critics[index]
-                weight.grad = torch.bmm(grad.transpose(1, 2), inputs[index])
-                bias.grad = grad.sum(1)
-                if index:
-                    grad = _ACTIVATION_BACKWARD[layout.critics[index - 1][2]](torch.bmm(grad, weight), inputs[index])
+            _backward(layout.critics, inputs, (error * (2.0 / error.shape[-1])).unsqueeze(-1))  # from dL/dQ, [2, B, 1]
         return loss
 
     def _target_value(self, layout, tensordict, action) -> tuple[torch.Tensor, torch.Tensor]:
@@ -218,12 +206,7 @@ class FusedTD3Loss(TD3LossQ1Actor):
         if not layout or loss_priority_weight(self, tensordict) is not None:
             return super().actor_loss(tensordict)
         observation = tensordict.get("observation")
-        x = torch.cat([observation, self._actor(layout.actor, layout.bounds, observation)], -1)
-        for weight_t, bias, act in layout.critic1:
-            x = torch.addmm(bias, x, weight_t)
-            if act is not None:
-                x = act(x)
-        state_action_value = x.squeeze(-1)
+        state_action_value = _forward(layout.critic1, torch.cat([observation, self._actor(layout.actor, layout.bounds, observation)], -1)).squeeze(-1)
         return -state_action_value.mean(), {"state_action_value_actor": state_action_value.detach()}
 
     def actor_loss_backward(self, tensordict) -> torch.Tensor | None:
@@ -240,68 +223,73 @@ class FusedTD3Loss(TD3LossQ1Actor):
         tanh_module = self.actor_network.module[1]
         with torch.no_grad():
             observation = tensordict.get("observation")
-            actor_inputs, x = [], observation
-            for weight, bias, act in layout.actor:
-                actor_inputs.append(x)
-                x = torch.addmm(bias, x, weight.t())
-                if act is not None:
-                    x = act(x)
-            squashed = x.tanh()  # squash(), step by step: its backward needs each step
+            actor_inputs, critic_inputs = [], []
+            squashed = _forward(layout.actor, observation, actor_inputs).tanh()  # squash(), step by step: its backward needs each step
             low, high = layout.bounds
             eps = torch.finfo(squashed.dtype).resolution
             clamped = squashed.clamp(-1 + eps, 1 - eps) if tanh_module.clamp else squashed
             action = low + (high - low) * (clamped + 1) / 2 if tanh_module.non_trivial else clamped
-            critic_inputs, x = [], torch.cat([observation, action], -1)
-            for weight_t, bias, act in layout.critic1:
-                critic_inputs.append(x)
-                x = torch.addmm(bias, x, weight_t)
-                if act is not None:
-                    x = act(x)
-            loss = -x.squeeze(-1).mean()
-            grad = torch.full_like(x, -1.0 / x.shape[0])  # dL/dQ_1
-            for index in range(len(critic_inputs) - 1, -1, -1):
-                grad = torch.mm(grad, layout.critic1[index][0].t())
-                if index:
-                    grad = _ACTIVATION_BACKWARD[layout.critic1[index - 1][2]](grad, critic_inputs[index])
+            q1 = _forward(layout.critic1, torch.cat([observation, action], -1), critic_inputs)
+            loss = -q1.squeeze(-1).mean()
+            grad = _backward(layout.critic1, critic_inputs, torch.full_like(q1, -1.0 / q1.shape[0]), parameters=False)  # from dL/dQ_1
             grad = grad[:, observation.shape[-1]:]  # dL/d action
             if tanh_module.non_trivial:
                 grad = grad / 2 * (high - low)
             if tanh_module.clamp:
                 grad = torch.where((squashed >= -1 + eps) & (squashed <= 1 - eps), grad, 0.0)
-            grad = torch.ops.aten.tanh_backward(grad, squashed)
-            for index in range(len(actor_inputs) - 1, -1, -1):
-                weight, bias, act = layout.actor[index]
-                weight.grad = torch.mm(grad.t(), actor_inputs[index])
-                bias.grad = grad.sum(0)
-                if index:
-                    grad = _ACTIVATION_BACKWARD[layout.actor[index - 1][2]](torch.mm(grad, weight), actor_inputs[index])
+            _backward(layout.actor, actor_inputs, torch.ops.aten.tanh_backward(grad, squashed))
         return loss
 
     def _actor(self, layers, bounds, observation) -> torch.Tensor:
         """The actor (MLP + ``TanhModule``) with the online or target ``layers``, as its modules compute it."""
-        x = observation
-        for weight, bias, act in layers:
-            x = torch.addmm(bias, x, weight.t())
-            if act is not None:
-                x = act(x)
-        return squash(self.actor_network.module[1], x, *bounds)
+        return squash(self.actor_network.module[1], _forward(layers, observation), *bounds)
 
     @staticmethod
-    def _twin_critics(layers, observation, action) -> torch.Tensor:
+    def _twin_critics(layers, observation, action, inputs: list | None = None) -> torch.Tensor:
         """``[2, B]`` values of the stacked critics: one ``baddbmm`` per layer."""
         x = torch.cat([observation, action], -1)
-        x = x.expand(2, *x.shape)
-        for weight, bias, act in layers:  # weight [2, out, in], bias [2, out]
+        return _forward(layers, x.expand(2, *x.shape), inputs).squeeze(-1)
+
+
+def _forward(layers, x: torch.Tensor, inputs: list | None = None) -> torch.Tensor:
+    """``x`` through ``(weight, bias, activation)`` layers: ``addmm`` for a network's ``[out, in]``
+    weights, ``baddbmm`` for the twin critics' stacked ``[2, out, in]``. ``inputs`` (if given)
+    receives each layer's input, which :func:`_backward` needs."""
+    for weight, bias, act in layers:
+        if inputs is not None:
+            inputs.append(x)
+        if weight.dim() == 2:
+            x = torch.addmm(bias, x, weight.t())
+        else:
             x = torch.baddbmm(bias.unsqueeze(1), x, weight.transpose(1, 2))
-            if act is not None:
-                x = act(x)
-        return x.squeeze(-1)
+        if act is not None:
+            x = act(x)
+    return x
+
+
+def _backward(layers, inputs: list, grad: torch.Tensor, parameters: bool = True) -> torch.Tensor:
+    """The chain rule back through :func:`_forward`'s ``layers`` from ``grad`` = dL/d(output):
+    per layer ``dW = g^T x`` and ``db = sum over the batch of g`` (assigned to ``.grad`` when
+    ``parameters``), then ``g <- (g W) * act'(x)``. Returns dL/d(first input) when not
+    ``parameters`` (the actor loss needs dL/d action from the first critic, whose weights it does
+    not train); with ``parameters`` the first layer's input gradient is not computed."""
+    for index in range(len(layers) - 1, -1, -1):
+        weight, bias, _ = layers[index]
+        if parameters:
+            weight.grad = torch.matmul(grad.transpose(-2, -1), inputs[index])
+            bias.grad = grad.sum(-2)
+            if not index:
+                break
+        grad = torch.matmul(grad, weight)
+        if index:
+            grad = _ACTIVATION_BACKWARD[layers[index - 1][2]](grad, inputs[index])
+    return grad
 
 
 class _FusedLayout:
     """The tensors :class:`FusedTD3Loss` computes with, looked up once instead of ~30 TensorDict
     lookups per update: ``(weight, bias, activation)`` per layer of the online and target actor
-    and twin critics, the first critic's detached weights transposed for the actor loss, and
+    and twin critics, the first critic's detached weights for the actor loss, and
     the action bounds of both actors."""
 
     def __init__(self, loss: TD3Loss, actor_mlp, critic_mlp):
@@ -317,7 +305,7 @@ class _FusedLayout:
         )
         self.critics = layers(loss.qvalue_network_params, ("module",), critic_mlp)
         self.target_critics = layers(loss.target_qvalue_network_params, ("module",), critic_mlp)
-        self.critic1 = [(weight.detach()[0].t(), bias.detach()[0], act) for weight, bias, act in self.critics]
+        self.critic1 = [(weight.detach()[0], bias.detach()[0], act) for weight, bias, act in self.critics]
 
 
 class ForeachSoftUpdate(SoftUpdate):
