@@ -181,16 +181,11 @@ def test_fused_value_loss_equals_td3loss():
     """FusedTD3Loss.value_loss (stacked twin critics, hand-chained target actor) gives stock
     TD3Loss.value_loss's loss, metadata and critic gradients, with targets differing from the
     online networks, bounds other than [-1, 1] and some terminated transitions."""
-    from torchrl.data import Bounded
     from torchrl.objectives import TD3Loss
 
     from torchrl_esrl.objectives.td3 import FusedTD3Loss
 
-    torch.manual_seed(0)
-    spec = Bounded(-2 * torch.ones(6), torch.linspace(0.5, 3.0, 6), shape=(6,))
-    actor, critic = make_actor(17, spec), make_critic(17, 6)
-    batch = _random_transitions(256, 17, 6)
-    batch["next", "terminated"][::5] = True
+    spec, actor, critic, batch = _critic_case(256, terminated_every=5)
     results = []
     for cls in (TD3Loss, FusedTD3Loss):
         loss = _loss_with_moved_targets(cls, actor, critic, spec)
@@ -207,6 +202,19 @@ def test_fused_value_loss_equals_td3loss():
         torch.testing.assert_close(fused_meta[key], stock_meta[key])
     for a, b in zip(stock_grads, fused_grads):
         torch.testing.assert_close(b, a, rtol=1e-5, atol=1e-7)
+
+
+def _critic_case(batch_size, terminated_every, activation="relu"):
+    """Bounds other than [-1, 1], the paper's networks (critic activation as given) and a batch
+    with some terminated transitions: the case the critic-loss equality tests compare."""
+    from torchrl.data import Bounded
+
+    torch.manual_seed(0)
+    spec = Bounded(-2 * torch.ones(6), torch.linspace(0.5, 3.0, 6), shape=(6,))
+    actor, critic = make_actor(17, spec), make_critic(17, 6, activation=activation)
+    batch = _random_transitions(batch_size, 17, 6)
+    batch["next", "terminated"][::terminated_every] = True
+    return spec, actor, critic, batch
 
 
 def _loss_with_moved_targets(cls, actor, critic, spec):
@@ -343,16 +351,11 @@ def test_value_loss_backward_equals_td3loss_backward(activation):
     """FusedTD3Loss.value_loss_backward (loss and critic gradients by the chain rule, no autograd)
     against stock TD3Loss.value_loss + backward: same loss, same gradients, with targets
     differing from the online networks, non-unit bounds and terminated transitions."""
-    from torchrl.data import Bounded
     from torchrl.objectives import TD3Loss
 
     from torchrl_esrl.objectives.td3 import FusedTD3Loss
 
-    torch.manual_seed(0)
-    spec = Bounded(-2 * torch.ones(6), torch.linspace(0.5, 3.0, 6), shape=(6,))
-    actor, critic = make_actor(17, spec), make_critic(17, 6, activation=activation)
-    batch = _random_transitions(200, 17, 6)
-    batch["next", "terminated"][::7] = True
+    spec, actor, critic, batch = _critic_case(200, terminated_every=7, activation=activation)
     results = []
     for cls in (TD3Loss, FusedTD3Loss):
         loss = _loss_with_moved_targets(cls, actor, critic, spec)
