@@ -85,6 +85,7 @@ class Setup:
         self._cpu_start = 0.0
         self.env_steps_per_generation = 0
         self.plain_seconds: dict[int, list[float]] = {}  # torch threads -> plain TD3 seconds per update, per round
+        self.plain_td3: dict = {}  # torch threads -> benchmarks.td3_update.PlainTD3, built on first use
 
     def record(self, part: str, seconds: float, units: int) -> None:
         """Wall seconds of ``part`` per unit, and the process CPU time since the part's
@@ -147,11 +148,11 @@ class Setup:
         same process and rounds as the loop's own updates (not part of the iteration)."""
         from benchmarks.td3_update import PlainTD3
 
-        plain = self.__dict__.get(f"_plain_{threads}")
+        plain = self.plain_td3.get(threads)
         with torch_threads(threads):
             if plain is None:
                 torch.manual_seed(0)
-                plain = self.__dict__[f"_plain_{threads}"] = PlainTD3(self.obs_dim, self.act_dim)
+                plain = self.plain_td3[threads] = PlainTD3(self.obs_dim, self.act_dim)
                 for _ in range(10):
                     plain.update(self.buffer.sample())
             start = time.perf_counter()

@@ -142,10 +142,14 @@ class FusedTD3Loss(TD3LossQ1Actor):
             self.__dict__["_fused"] = layout
         return layout
 
+    def _fused_layout_for(self, tensordict):
+        """:meth:`_fused_layout`, or False for a batch with prioritised weights (TorchRL's code handles those)."""
+        return self._fused_layout() if loss_priority_weight(self, tensordict) is None else False
+
     def value_loss(self, tensordict, *, metadata: bool = True) -> tuple[torch.Tensor, dict]:
         """TD3Loss's critic loss; ``metadata=False`` skips the metadata tensors (TD3.update has no use for them)."""
-        layout = self._fused_layout()
-        if not layout or loss_priority_weight(self, tensordict) is not None:
+        layout = self._fused_layout_for(tensordict)
+        if not layout:
             return super().value_loss(tensordict)
         action = tensordict.get(self.tensor_keys.action)
         target_value, next_value = self._target_value(layout, tensordict, action)
@@ -172,8 +176,8 @@ class FusedTD3Loss(TD3LossQ1Actor):
         ``g = dL/dQ = 2 (Q - y) / B``. tests/test_td3.py compares loss and gradients with
         stock ``TD3Loss.value_loss`` + ``backward``.
         """
-        layout = self._fused_layout()
-        if not layout or loss_priority_weight(self, tensordict) is not None:
+        layout = self._fused_layout_for(tensordict)
+        if not layout:
             return None
         action = tensordict.get(self.tensor_keys.action)
         target_value, _ = self._target_value(layout, tensordict, action)
@@ -202,8 +206,8 @@ class FusedTD3Loss(TD3LossQ1Actor):
     def actor_loss(self, tensordict) -> tuple[torch.Tensor, dict]:
         """``-Q_1(s, pi(s)).mean()`` as :class:`TD3LossQ1Actor`, with the actor and the first
         critic's (detached) parameters used directly instead of swapped into the modules."""
-        layout = self._fused_layout()
-        if not layout or loss_priority_weight(self, tensordict) is not None:
+        layout = self._fused_layout_for(tensordict)
+        if not layout:
             return super().actor_loss(tensordict)
         observation = tensordict.get("observation")
         state_action_value = _forward(layout.critic1, torch.cat([observation, self._actor(layout.actor, layout.bounds, observation)], -1)).squeeze(-1)
@@ -217,8 +221,8 @@ class FusedTD3Loss(TD3LossQ1Actor):
         through ``TanhModule``'s squashing, then through the actor's layers.
         tests/test_td3.py compares loss and gradients with stock ``TD3Loss.actor_loss``.
         """
-        layout = self._fused_layout()
-        if not layout or loss_priority_weight(self, tensordict) is not None:
+        layout = self._fused_layout_for(tensordict)
+        if not layout:
             return None
         tanh_module = self.actor_network.module[1]
         with torch.no_grad():
