@@ -64,6 +64,7 @@ def real_objects(env, td3_loss, collector) -> dict:
         "torchrl.objectives.SoftUpdate": SoftUpdate(td3_loss, tau=0.005),
         "torchrl.collectors.Collector": collector,
         "torchrl.envs.GymEnv": GymEnv("Pendulum-v1"),
+        "tensordict.TensorDict": batch(2),
     }
 
 
@@ -92,6 +93,18 @@ def test_tensor_storage_data_is_the_storage_itself():
     tensors["observation"][0] = 7.0  # the same memory, not a copy
     assert (storage.get(torch.tensor([0]))["observation"] == 7).all()
     assert torchrl_private.tensor_storage_data(ListStorage(10)) is None
+
+
+def test_unchecked_tensordict_is_what_the_constructor_builds():
+    leaves = {"observation": torch.randn(3, 2), "next": {"reward": torch.randn(3, 1), "done": torch.zeros(3, 1, dtype=torch.bool)}}
+    checked = TensorDict(leaves, batch_size=[3], device="cpu")
+    unchecked = torchrl_private.unchecked_tensordict(leaves, torch.Size([3]), torch.device("cpu"))
+    assert type(unchecked) is TensorDict and type(unchecked["next"]) is TensorDict
+    assert unchecked.batch_size == checked.batch_size and unchecked["next"].batch_size == checked["next"].batch_size
+    assert unchecked.device == checked.device and unchecked["next"].device == checked["next"].device
+    assert set(unchecked.keys(True, True)) == set(checked.keys(True, True))
+    assert all(unchecked.get(key) is checked.get(key) for key in checked.keys(True, True))  # the same tensors, no copies
+    assert (unchecked == checked).all()
 
 
 def test_append_rows_writes_what_extend_writes():

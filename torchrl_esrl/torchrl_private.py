@@ -12,8 +12,9 @@ from __future__ import annotations
 
 import weakref
 
+import numpy as np
 import torch
-from tensordict import TensorDictBase
+from tensordict import TensorDict, TensorDictBase
 from torchrl.data import (
     LazyTensorStorage,
     RandomSampler,
@@ -29,9 +30,24 @@ PRIVATE_NAMES: dict[str, tuple[str, ...]] = {
     "torchrl.objectives.SoftUpdate": ("_target_names", "_sources", "_targets"),
     "torchrl.collectors.Collector": ("_carrier", "_frames", "_iter", "_traj_pool"),
     "torchrl.envs.GymEnv": ("_env",),
+    "tensordict.TensorDict": ("_new_unsafe",),
 }
 
 # ------------------------------------------------------------------------ data (replay buffers)
+
+
+def unchecked_tensordict(source: dict, batch_size: torch.Size, device) -> TensorDictBase:
+    """``TensorDict(source, batch_size=batch_size, device=device)`` without its checks of every
+    leaf (nested dicts become nested TensorDicts, as the constructor makes them). Only for
+    leaves built to fit: CPU tensors on ``device`` whose leading dims are ``batch_size``.
+
+    Why private: the TD3 collector builds one 8-leaf TensorDict per frame, and the public
+    constructor's per-leaf validation is ~25 us of a ~0.3 ms frame; ``TensorDict._new_unsafe``
+    is tensordict's own constructor for data it already knows to be valid.
+    ``tests/test_torchrl_private.py`` checks it against the public constructor.
+    """
+    return TensorDict._new_unsafe(source, batch_size=batch_size, device=device)
+
 
 
 def tensor_storage_data(storage) -> TensorDictBase | None:
@@ -51,7 +67,7 @@ def tensor_storage_data(storage) -> TensorDictBase | None:
     return data if isinstance(data, TensorDictBase) else None
 
 
-_APPEND_LAYOUTS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()  # buffer -> (storage TensorDict, keys, their leaves, index leaf)
+_APPEND_LAYOUTS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()  # buffer -> (storage TensorDict, keys, their leaves, index leaf, numpy views of those leaves, leaf dtypes and item shapes)
 
 
 def append_rows(buffer, data: TensorDictBase, keys=None) -> torch.Tensor | None:
@@ -87,27 +103,57 @@ def append_rows(buffer, data: TensorDictBase, keys=None) -> torch.Tensor | None:
     if layout is None or layout[0] is not stored or layout[1] != keys:
         if not isinstance(stored, TensorDictBase) or sorted(map(str, [*keys, "index"])) != sorted(map(str, stored.keys(True, True))):
             return None
-        layout = _APPEND_LAYOUTS[buffer] = (stored, keys, [stored.get(key) for key in keys], stored.get("index"))
-    _, _, destinations, stored_index = layout
+        destinations = [stored.get(key) for key in keys]
+        # numpy views of CPU storage: a one-row slice copy through numpy costs ~0.2 us against
+        # ~2 us for torch's __setitem__ (the TD3 side writes one row per frame).
+        arrays = [_numpy_view(d) for d in (*destinations, stored.get("index"))]
+        arrays = None if any(a is None for a in arrays) else arrays
+        kinds = [(d.dtype, d.shape[1:]) for d in destinations]
+        layout = _APPEND_LAYOUTS[buffer] = (stored, keys, destinations, stored.get("index"), arrays, kinds)
+    _, _, destinations, stored_index, arrays, kinds = layout
     values = [data.get(key) for key in keys]
-    if any(v.dtype != d.dtype or v.shape[1:] != d.shape[1:] for v, d in zip(values, destinations)):
+    if any(v.dtype != dtype or v.shape[1:] != shape for v, (dtype, shape) in zip(values, kinds)):
         return None  # extend casts (or refuses) as TorchRL decides
     rows, capacity = data.batch_size[0], storage.max_size
     cursor = writer._cursor
-    index = torch.arange(cursor, cursor + rows)
-    # Rows that fit before the end of the storage are one slice (a view copy); a wrap needs the indices.
-    where = slice(cursor, cursor + rows) if cursor + rows <= capacity else index.remainder_(capacity)
+    index = torch.from_numpy(np.arange(cursor, cursor + rows, dtype=np.int64))  # torch.arange's values, ~5x cheaper for a few rows
+    sources = _numpy_sources(values) if cursor + rows <= capacity and arrays is not None else None
     writer._cursor = (cursor + rows) % capacity
     writer._write_count += rows
-    for value, destination in zip(values, destinations):
-        destination[where] = value
-    stored_index[where] = index
+    if sources is not None:  # rows that fit before the end of the storage: one slice, copied through numpy
+        for source, array in zip(sources, arrays):
+            array[cursor : cursor + rows] = source
+        arrays[-1][cursor : cursor + rows] = index.numpy()
+    else:  # a wrap needs the indices
+        where = slice(cursor, cursor + rows) if cursor + rows <= capacity else index.remainder_(capacity)
+        for value, destination in zip(values, destinations):
+            destination[where] = value
+        stored_index[where] = index
     storage._set_last_cursor(index)
     storage._len = min(storage._len + rows, capacity)
     storage._bump_mutation_revision()
     writer._mark_update_entities(index)
     buffer.sampler.extend(index)
     return index
+
+
+def _numpy_sources(values: list) -> list | None:
+    """The tensors' memory as numpy arrays, or None if one cannot be read so (another device, a
+    tensor that requires grad, a dtype numpy lacks)."""
+    try:
+        return [value.numpy() for value in values]
+    except (RuntimeError, TypeError):
+        return None
+
+
+def _numpy_view(tensor: torch.Tensor):
+    """The CPU tensor's memory as a numpy array, or None (another device, or a dtype numpy lacks)."""
+    if tensor.device.type != "cpu":
+        return None
+    try:
+        return tensor.numpy()
+    except (TypeError, RuntimeError):
+        return None
 
 
 # ---------------------------------------------------------------------- objectives (TD3 loss)

@@ -61,6 +61,7 @@ def td3_phase(
     p = PhaseProgress() if progress is None else progress
     with torch_threads(td3.num_threads):  # the TD3 update's best count (TD3's docstring)
         is_multibuffer = hasattr(buffer, "ready")
+        ready = False  # the phase only adds items: once ready, the buffer stays ready (checked once, not per frame)
         while p.collected < frames:
             batch = next(batches)
             p.collected += batch.numel()
@@ -72,7 +73,8 @@ def td3_phase(
                 p.episodes += 1
                 if on_episode is not None:
                     on_episode(episode_return)
-            if buffer.ready() if is_multibuffer else len(buffer) > 0:
+            ready = ready or (buffer.ready() if is_multibuffer else len(buffer) > 0)
+            if ready:
                 p.owed += batch.numel() * updates_per_frame  # fractional updates carried between batches
                 while p.owed >= 1:
                     p.owed -= 1

@@ -14,7 +14,10 @@ from torchrl.collectors import Collector
 
 from torchrl_esrl.modules.networks import squash
 from torchrl_esrl.modules.warmup import RandomWarmup
-from torchrl_esrl.torchrl_private import collector_carrier, gym_env_of, restore_collector
+from torchrl_esrl.torchrl_private import collector_carrier, gym_env_of, restore_collector, unchecked_tensordict
+
+_ACTIVATION_FUNCTIONS = {torch.nn.Tanh: torch.tanh, torch.nn.ReLU: torch.relu}  # what each module's forward computes
+
 
 def make_td3_collector(env, td3, frames_per_batch: int = 1, fast: bool = False, device="cpu"):
     """A collector acting with the exploration policy; runs for as long as it is iterated.
@@ -56,6 +59,8 @@ class GymTD3Collector:
         self.gym_env = gym_env_of(env)
         self.frames_per_batch = int(frames_per_batch)
         self.device = env.device
+        if self.device is not None and torch.device(self.device).type != "cpu":  # next_batch builds its TensorDicts from numpy arrays
+            raise ValueError(f"GymTD3Collector: the env's device must be cpu, got {self.device}")
         policy = td3.exploration_policy
         # Fujimoto's uniform warm-up (td3.random_frames) wraps the noisy actor: its draws, then the actor's.
         self.warmup = policy if isinstance(policy, RandomWarmup) else None
@@ -67,10 +72,12 @@ class GymTD3Collector:
             if isinstance(module, torch.nn.Linear):
                 self.layers.insert(0, (module.weight, module.bias, activation))
                 activation = None
-            else:
-                activation = module
+            else:  # the function the activation module calls, without the module call around it
+                activation = _ACTIVATION_FUNCTIONS.get(type(module), module)
         self.tanh_module = actor[1]
         self.noise = noise
+        # Buffers that load_state_dict overwrites in place: looked up once, as the layers are.
+        self.squash_bounds = (self.tanh_module.action_low, self.tanh_module.action_high)
         self.action_spec = env.action_spec
         # Bounded.project is clamp(low, high) when out of the box and the identity inside: clamp.
         self.action_low, self.action_high = self.action_spec.space.low, self.action_spec.space.high
@@ -89,11 +96,11 @@ class GymTD3Collector:
         n, gym_env = self.frames_per_batch, self.gym_env
         observations = np.empty((n, self.observation_dim), dtype=np.float32)
         next_observations = np.empty((n, self.observation_dim), dtype=np.float32)
-        actions = torch.empty(n, self.action_dim)
         rewards = np.empty((n, 1), dtype=np.float32)
         terminated = np.empty((n, 1), dtype=bool)
         truncated = np.empty((n, 1), dtype=bool)
         episode_rewards = np.empty((n, 1), dtype=np.float32)
+        actions = []  # one [1, action] tensor per frame
         tanh, noise, layers = self.tanh_module, self.noise, self.layers
         mean, std = noise.mean.expand(1, self.action_dim), noise.std.expand(1, self.action_dim)
         for i in range(n):
@@ -109,12 +116,12 @@ class GymTD3Collector:
                     x = torch.nn.functional.linear(x, weight, bias)
                     if activation is not None:
                         x = activation(x)
-                action = squash(tanh, x, tanh.action_low, tanh.action_high)
+                action = squash(tanh, x, *self.squash_bounds)
                 action = torch.clamp(action + torch.normal(mean=mean, std=std) * noise.sigma, self.action_low, self.action_high)
                 if self.warmup is not None:
                     self.warmup.frames_acted += 1  # counted as RandomWarmup.forward counts them
-            actions[i] = action[0]
-            observation, reward, term, trunc, _ = gym_env.step(action[0].numpy())
+            actions.append(action)
+            observation, reward, term, trunc, _ = gym_env.step(action.numpy()[0])
             next_observations[i] = observation
             rewards[i, 0] = reward
             self.episode_reward = self.episode_reward + rewards[i, 0]
@@ -122,25 +129,22 @@ class GymTD3Collector:
             terminated[i, 0], truncated[i, 0] = term, trunc
             self.observation = None if term or trunc else observation
         self.frames += n
-        done = torch.from_numpy(terminated | truncated)
-        return TensorDict(
+        # Leaves built to fit (CPU, leading dim n): the constructor's per-leaf checks are skipped.
+        return unchecked_tensordict(
             {
                 "observation": torch.from_numpy(observations),
-                "action": actions,
-                "next": TensorDict(
-                    {
-                        "observation": torch.from_numpy(next_observations),
-                        "reward": torch.from_numpy(rewards),
-                        "done": done,
-                        "terminated": torch.from_numpy(terminated),
-                        "truncated": torch.from_numpy(truncated),
-                        "episode_reward": torch.from_numpy(episode_rewards),
-                    },
-                    batch_size=[n],
-                ),
+                "action": actions[0] if n == 1 else torch.cat(actions),
+                "next": {
+                    "observation": torch.from_numpy(next_observations),
+                    "reward": torch.from_numpy(rewards),
+                    "done": torch.from_numpy(terminated | truncated),
+                    "terminated": torch.from_numpy(terminated),
+                    "truncated": torch.from_numpy(truncated),
+                    "episode_reward": torch.from_numpy(episode_rewards),
+                },
             },
-            batch_size=[n],
-            device=self.device,  # the buffers' storage device: TorchRL's writer then skips a .to() of every leaf
+            torch.Size([n]),
+            self.device,  # the buffers' storage device: TorchRL's writer then skips a .to() of every leaf
         )
 
     def state_dict(self) -> dict:
