@@ -204,15 +204,17 @@ def test_multibuffer_is_a_torchrl_replay_buffer_ensemble():
     assert buffer.storage.fast_path()
 
 
-def test_fast_gather_equals_each_buffers_own_storage_get():
-    """The fast path (index_select from the storages' tensors) returns what each buffer's public
+@pytest.mark.parametrize("dtype", [torch.float32, torch.bfloat16])  # numpy's take; torch's index_select (no numpy bfloat16)
+def test_fast_gather_equals_each_buffers_own_storage_get(dtype):
+    """The fast path (a gather from the storages' tensors) returns what each buffer's public
     ``storage.get`` returns for the same indices, tags included, in any order of buffer ids."""
     buffer = MultiBuffer(capacity=100)
     generator = torch.Generator().manual_seed(0)
     for name, size in zip(buffer.names, (40, 70, 100)):
         data = transitions(size)
-        data["observation"] = torch.randn(size, 3, generator=generator)
+        data["observation"] = torch.randn(size, 3, generator=generator).to(dtype)
         buffer.extend(data, name)
+    assert (buffer.storage._leaves()[2] is None) == (dtype is torch.bfloat16)  # numpy views of the storages, or none
     ids = torch.tensor([2, 0, 0, 1, 2, 0, 1, 1, 2])
     local = torch.tensor([99, 3, 39, 0, 5, 7, 69, 2, 0])
     index = TensorDict({"buffer_ids": ids, "index": local}, batch_size=[len(ids)])

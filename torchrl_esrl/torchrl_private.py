@@ -23,6 +23,8 @@ from torchrl.data import (
     TensorStorage,
 )
 
+from torchrl_esrl.arrays import numpy_view, numpy_views
+
 PRIVATE_NAMES: dict[str, tuple[str, ...]] = {
     "torchrl.data.LazyTensorStorage": ("_storage", "_len", "_set_last_cursor", "_bump_mutation_revision"),
     "torchrl.data.TensorDictRoundRobinWriter": ("_cursor", "_write_count", "_track_generations", "_mark_update_entities"),
@@ -106,7 +108,7 @@ def append_rows(buffer, data: TensorDictBase, keys=None) -> torch.Tensor | None:
         destinations = [stored.get(key) for key in keys]
         # numpy views of CPU storage: a one-row slice copy through numpy costs ~0.2 us against
         # ~2 us for torch's __setitem__ (the TD3 side writes one row per frame).
-        arrays = [_numpy_view(d) for d in (*destinations, stored.get("index"))]
+        arrays = [numpy_view(d) for d in (*destinations, stored.get("index"))]
         arrays = None if any(a is None for a in arrays) else arrays
         kinds = [(d.dtype, d.shape[1:]) for d in destinations]
         layout = _APPEND_LAYOUTS[buffer] = (stored, keys, destinations, stored.get("index"), arrays, kinds)
@@ -117,7 +119,7 @@ def append_rows(buffer, data: TensorDictBase, keys=None) -> torch.Tensor | None:
     rows, capacity = data.batch_size[0], storage.max_size
     cursor = writer._cursor
     index = torch.from_numpy(np.arange(cursor, cursor + rows, dtype=np.int64))  # torch.arange's values, ~5x cheaper for a few rows
-    sources = _numpy_sources(values) if cursor + rows <= capacity and arrays is not None else None
+    sources = numpy_views(values) if cursor + rows <= capacity and arrays is not None else None
     writer._cursor = (cursor + rows) % capacity
     writer._write_count += rows
     if sources is not None:  # rows that fit before the end of the storage: one slice, copied through numpy
@@ -135,25 +137,6 @@ def append_rows(buffer, data: TensorDictBase, keys=None) -> torch.Tensor | None:
     writer._mark_update_entities(index)
     buffer.sampler.extend(index)
     return index
-
-
-def _numpy_sources(values: list) -> list | None:
-    """The tensors' memory as numpy arrays, or None if one cannot be read so (another device, a
-    tensor that requires grad, a dtype numpy lacks)."""
-    try:
-        return [value.numpy() for value in values]
-    except (RuntimeError, TypeError):
-        return None
-
-
-def _numpy_view(tensor: torch.Tensor):
-    """The CPU tensor's memory as a numpy array, or None (another device, or a dtype numpy lacks)."""
-    if tensor.device.type != "cpu":
-        return None
-    try:
-        return tensor.numpy()
-    except (TypeError, RuntimeError):
-        return None
 
 
 # ---------------------------------------------------------------------- objectives (TD3 loss)

@@ -25,8 +25,9 @@ from tensordict import LazyStackedTensorDict, TensorDict, TensorDictBase
 from torchrl.data import LazyTensorStorage, ReplayBufferEnsemble, TensorDictReplayBuffer
 from torchrl.data.replay_buffers import SamplerEnsemble, StorageEnsemble
 
+from torchrl_esrl.arrays import numpy_views
 from torchrl_esrl.errors import ConfigError
-from torchrl_esrl.torchrl_private import append_rows, tensor_storage_data
+from torchrl_esrl.torchrl_private import append_rows, tensor_storage_data, unchecked_tensordict
 
 BUFFER_NAMES = ("good", "bad", "noisy")
 
@@ -169,7 +170,7 @@ class ExactRatioSampler(SamplerEnsemble):
         ids = self._ids_cache.get(counts)
         if ids is None:
             ids = self._ids_cache[counts] = torch.repeat_interleave(torch.arange(len(counts)), torch.tensor(counts)).to(index.device)
-        return TensorDict({"buffer_ids": ids.clone(), "index": index}, batch_size=[int(batch_size)]), {}
+        return unchecked_tensordict({"buffer_ids": ids.clone(), "index": index}, torch.Size([int(batch_size)]), None), {}
 
 
 def _nest(flat: Mapping) -> dict:
@@ -234,7 +235,10 @@ class ExactRatioStorage(StorageEnsemble):
             if any(t.dtype != r.dtype or t.shape[1:] != r.shape[1:] or t.device != r.device for t, r in zip(tensors, reference)):
                 return None
             leaves.append(tensors)
-        self._leaves_cache = (datas, (keys, leaves))
+        # numpy views of every member's tensors (CPU storages), for the gather in get()
+        arrays = [None if tensors is None else numpy_views(tensors) for tensors in leaves]
+        arrays = None if any(a is None for a, t in zip(arrays, leaves) if t is not None) else arrays
+        self._leaves_cache = (datas, (keys, leaves, arrays))
         return self._leaves_cache[1]
 
     def get(self, item: TensorDictBase) -> TensorDictBase:
@@ -258,17 +262,26 @@ class ExactRatioStorage(StorageEnsemble):
             if self.source_key is not None:
                 batch.set(self.source_key, buffer_ids)
             return batch
-        keys, tensors = leaves
+        keys, tensors, arrays = leaves
         total = buffer_ids.numel()
         outs = {}
+        # CPU storages: numpy's take (~1-2 us a call for a few hundred rows, against ~4 us for
+        # torch.index_select); the same rows, copied exactly.
+        member_indices = None if arrays is None else numpy_views(member_index for _, member_index, _ in groups)
         for position, key in enumerate(keys):
             reference = tensors[groups[0][0]][position]
             out = outs[key] = torch.empty((total, *reference.shape[1:]), dtype=reference.dtype, device=reference.device)
-            for member, member_index, begin in groups:
-                torch.index_select(tensors[member][position], 0, member_index, out=out[begin : begin + member_index.numel()])
+            if member_indices is None:
+                for member, member_index, begin in groups:
+                    torch.index_select(tensors[member][position], 0, member_index, out=out[begin : begin + member_index.numel()])
+                continue
+            out_array = out.numpy()
+            for (member, _, begin), member_index in zip(groups, member_indices):
+                arrays[member][position].take(member_index, 0, out_array[begin : begin + len(member_index)])
         if self.source_key is not None:
             outs[self.source_key] = buffer_ids
-        return TensorDict(_nest(outs), batch_size=[total])
+        # Leaves made here to fit the batch: the constructor's per-leaf checks are skipped.
+        return unchecked_tensordict(_nest(outs), torch.Size([total]), None)
 
 
 class MultiBuffer(ReplayBufferEnsemble):
