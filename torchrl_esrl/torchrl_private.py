@@ -51,7 +51,6 @@ def unchecked_tensordict(source: dict, batch_size: torch.Size, device) -> Tensor
     return TensorDict._new_unsafe(source, batch_size=batch_size, device=device)
 
 
-
 def tensor_storage_data(storage) -> TensorDictBase | None:
     """The TensorDict a TorchRL ``TensorStorage`` (``LazyTensorStorage``...) writes into; None
     before its first write (or for a storage of plain tensors / pytrees).
@@ -126,7 +125,7 @@ def append_rows(buffer, data: TensorDictBase, keys=None) -> torch.Tensor | None:
         for source, array in zip(sources, arrays):
             array[cursor : cursor + rows] = source
         arrays[-1][cursor : cursor + rows] = index.numpy()
-    else:  # a wrap needs the indices
+    else:  # a wrap (it needs the indices), or storage numpy cannot view: torch's copies
         where = slice(cursor, cursor + rows) if cursor + rows <= capacity else index.remainder_(capacity)
         for value, destination in zip(values, destinations):
             destination[where] = value
