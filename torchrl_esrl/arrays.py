@@ -7,22 +7,12 @@ tensors' memory, so writing through them is writing the tensors.
 from __future__ import annotations
 
 import numpy as np
-import torch
-
-
-def numpy_view(tensor: torch.Tensor) -> np.ndarray | None:
-    """The tensor's memory as a numpy array; None for another device or a dtype numpy lacks."""
-    if tensor.device.type != "cpu":
-        return None
-    try:
-        return tensor.numpy()
-    except (TypeError, RuntimeError):
-        return None
 
 
 def numpy_views(tensors) -> list[np.ndarray] | None:
-    """:func:`numpy_view` of each tensor, or None if one has none (or requires grad)."""
+    """Each tensor's memory as a numpy array, or None if one cannot be viewed so (a tensor on
+    another device, of a dtype numpy lacks, or that requires grad)."""
     try:
         return [tensor.numpy() for tensor in tensors]
-    except (TypeError, RuntimeError):  # another device, a dtype numpy lacks, a tensor that requires grad
+    except (TypeError, RuntimeError):
         return None

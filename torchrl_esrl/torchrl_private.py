@@ -23,7 +23,7 @@ from torchrl.data import (
     TensorStorage,
 )
 
-from torchrl_esrl.arrays import numpy_view, numpy_views
+from torchrl_esrl.arrays import numpy_views
 
 PRIVATE_NAMES: dict[str, tuple[str, ...]] = {
     "torchrl.data.LazyTensorStorage": ("_storage", "_len", "_set_last_cursor", "_bump_mutation_revision"),
@@ -107,8 +107,7 @@ def append_rows(buffer, data: TensorDictBase, keys=None) -> torch.Tensor | None:
         destinations = [stored.get(key) for key in keys]
         # numpy views of CPU storage: a one-row slice copy through numpy costs ~0.2 us against
         # ~2 us for torch's __setitem__ (the TD3 side writes one row per frame).
-        arrays = [numpy_view(d) for d in (*destinations, stored.get("index"))]
-        arrays = None if any(a is None for a in arrays) else arrays
+        arrays = numpy_views([*destinations, stored.get("index")])
         kinds = [(d.dtype, d.shape[1:]) for d in destinations]
         layout = _APPEND_LAYOUTS[buffer] = (stored, keys, destinations, stored.get("index"), arrays, kinds)
     _, _, destinations, stored_index, arrays, kinds = layout
