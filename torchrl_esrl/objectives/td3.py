@@ -146,8 +146,8 @@ class FusedTD3Loss(TD3LossQ1Actor):
         """:meth:`_fused_layout`, or False for a batch with prioritised weights (TorchRL's code handles those)."""
         return self._fused_layout() if loss_priority_weight(self, tensordict) is None else False
 
-    def value_loss(self, tensordict, *, metadata: bool = True) -> tuple[torch.Tensor, dict]:
-        """TD3Loss's critic loss; ``metadata=False`` skips the metadata tensors (TD3.update has no use for them)."""
+    def value_loss(self, tensordict) -> tuple[torch.Tensor, dict]:
+        """TD3Loss's critic loss and its metadata tensors (TD3.update uses :meth:`value_loss_backward`)."""
         layout = self._fused_layout_for(tensordict)
         if not layout:
             return super().value_loss(tensordict)
@@ -155,8 +155,6 @@ class FusedTD3Loss(TD3LossQ1Actor):
         target_value, next_value = self._target_value(layout, tensordict, action)
         current_qvalue = self._twin_critics(layout.critics, tensordict.get("observation"), action)
         loss_qval = (current_qvalue - target_value).pow(2).sum(0).mean()
-        if not metadata:
-            return loss_qval, {}
         return loss_qval, {
             "td_error": (current_qvalue.detach() - target_value).pow(2),
             "next_state_value": next_value.squeeze(-1),
