@@ -4,10 +4,12 @@
 sigma 0.005 perturbations of a random actor), one episode each (up to 1000 steps), measured in
 one run for:
 
-  batched    the ``mujoco_batch`` backend as the ES phase runs it (mujoco.batch.Batch + one
-             batched forward per step over the mirrored pairs, two blocks of pairs on two threads)
-  batched_rows  the same with the forward over the flat rows (two halves on two threads)
-  batched_sequential  the flat rows' forward on one thread (``threaded_forward=False``)
+  batched    the ``mujoco_batch`` backend as the ES phase runs it (two workers, each playing chunks
+             of mirrored pairs on a mujoco.batch.Batch of its own, one batched forward per chunk
+             and step)
+  batched_rows  the same with the forward over the flat rows
+  one_batch  one chunk: the whole population in one batch stepped on all MuJoCo threads,
+             the forward over the mirrored pairs on one thread (``workers=1, chunks_per_worker=1``)
   raw        the same mujoco.batch stepping with fixed controls: no policy, no rewards (the ceiling)
   serial     one gymnasium env, offspring after offspring, torch forward per step with the
              offspring's weights loaded into an actor
@@ -126,14 +128,14 @@ def run(env_id: str, members: int, steps: int, nthread: int, sweep: bool, repeat
     policy = PopulationActor(actor)
     seeds = list(range(1000, 1000 + members))
     batched_backend = MujocoBatchBackend(env_id, policy, max_episode_steps=steps, nthread=nthread)
-    sequential_backend = MujocoBatchBackend(env_id, policy, max_episode_steps=steps, nthread=nthread, threaded_forward=False)
+    one_batch_backend = MujocoBatchBackend(env_id, policy, max_episode_steps=steps, nthread=nthread, workers=1, chunks_per_worker=1)
     batched_backend.rollout(params[:2], seeds[:2])  # warm-up (imports, allocator)
-    sequential_backend.rollout(params[:2], seeds[:2])
+    one_batch_backend.rollout(params[:2], seeds[:2])
     lockstep_backend = GymBackend(env_id, policy, max_episode_steps=steps)
     measures = {
         "batched": lambda: time_backend(batched_backend, params, seeds, mirrored),
         "batched_rows": lambda: time_backend(batched_backend, params, seeds),
-        "batched_sequential": lambda: time_backend(sequential_backend, params, seeds),
+        "one_batch": lambda: time_backend(one_batch_backend, params, seeds, mirrored),
         "raw": lambda: time_raw_physics(env_id, members, steps, seeds, nthread),
     }
     if not skip_slow:
@@ -142,16 +144,12 @@ def run(env_id: str, members: int, steps: int, nthread: int, sweep: bool, repeat
     results = interleaved_runs(repeats, measures)
     if sweep:
         variants = {}
-        for torch_threads in (1, 2):
-            for mj_threads in (1, 2):
-                for persistent in (False, True):
-                    torch.set_num_threads(torch_threads)
-                    backend = MujocoBatchBackend(env_id, policy, max_episode_steps=steps, nthread=mj_threads, persistent=persistent)
-                    name = f"torch{torch_threads}_mj{mj_threads}_{'persistent' if persistent else 'shared'}"
-                    variants[name] = time_backend(backend, params, seeds)
-        backend = MujocoBatchBackend(env_id, policy, max_episode_steps=steps, nthread=nthread, compact_finished=True)
-        variants["compact_finished"] = time_backend(backend, params, seeds)
-        torch.set_num_threads(nthread)
+        for workers in (1, 2):
+            for chunks in (1, 2, 4):
+                backend = MujocoBatchBackend(env_id, policy, max_episode_steps=steps, nthread=nthread, workers=workers, chunks_per_worker=chunks)
+                variants[f"workers{workers}_chunks{chunks}"] = time_backend(backend, params, seeds, mirrored)
+        backend = MujocoBatchBackend(env_id, policy, max_episode_steps=steps, nthread=nthread, persistent=True)
+        variants["persistent"] = time_backend(backend, params, seeds, mirrored)
         results["sweep"] = variants
     return results
 
@@ -161,9 +159,9 @@ def main(argv=None) -> dict:
     parser.add_argument("--quick", action="store_true", help="smoke run: 16 members x 200 steps")
     parser.add_argument("--members", type=int, default=None)
     parser.add_argument("--steps", type=int, default=None)
-    parser.add_argument("--nthread", type=int, default=os.cpu_count() or 1, help="MuJoCo batch threads")
+    parser.add_argument("--nthread", type=int, default=os.cpu_count() or 1, help="threads of the backend and of the raw physics batch")
     parser.add_argument("--torch-threads", type=int, default=None, help="torch.set_num_threads (default: torch's)")
-    parser.add_argument("--sweep", action="store_true", help="also time thread counts / persistent / compaction variants")
+    parser.add_argument("--sweep", action="store_true", help="also time workers x chunks and persistent-batch variants")
     parser.add_argument("--envs", nargs="+", default=ENVS)
     parser.add_argument("--repeats", type=int, default=3, help="interleaved rounds; each method's median run is reported")
     parser.add_argument("--skip-slow", action="store_true", help="leave out the serial and lockstep gymnasium loops")

@@ -18,7 +18,8 @@ Each part is timed in rounds (medians). ``--compare`` also times, in the same pr
 taking turns with the tuned configuration within every round, the reference configuration:
 ``td3.fast=false`` (stock ``TD3Loss`` + ``SoftUpdate`` + default Adam, TorchRL ``Collector``),
 ``td3.num_threads=null`` (the process's threads), buffer writes through TorchRL's ``extend``
-(``direct_writes=False``), the ES forward over the flat rows on one thread; each part's ratio
+(``direct_writes=False``), the whole ES population in one batch stepped on all threads, with the
+forward over the flat rows on one thread (``workers=1, chunks_per_worker=1``); each part's ratio
 is reported. ``--plain`` also times, interleaved with the loop's updates and sampling the same
 buffer, the plain PyTorch TD3 update of ``benchmarks.td3_update`` on 1 and on 2 threads: the
 update goal (>= 1.2x the best plain one) measured inside the loop.
@@ -42,6 +43,7 @@ from torchrl_esrl.run.factories import (
     make_actor_critic, make_es, make_es_collector, make_multibuffer, make_td3, make_td3_batches, make_threshold,
     make_train_env,
 )
+from torchrl_esrl.collectors.mujoco_batch import MujocoBatchBackend
 from torchrl_esrl.modules.networks import flat_parameters
 from torchrl_esrl.run.determinism import seed_everything
 from torchrl_esrl.algorithm.td3_phase import td3_phase
@@ -77,8 +79,8 @@ class Setup:
         self.buffer = make_multibuffer(cfg)
         self.buffer.direct_writes = not reference  # the reference writes through TorchRL's extend
         self.es, self.es_collector, self.threshold = make_es(cfg, self.actor), make_es_collector(cfg, self.actor), make_threshold(cfg)
-        if reference and hasattr(self.es_collector.backend, "threaded_forward"):
-            self.es_collector.backend.threaded_forward = False
+        if reference and isinstance(self.es_collector.backend, MujocoBatchBackend):  # the whole population in lock-step
+            self.es_collector.backend = MujocoBatchBackend(cfg.env.id, self.es_collector.population_actor, cfg.env.max_episode_steps, workers=1, chunks_per_worker=1)
         self.obs_dim, self.act_dim = train_env.observation_spec["observation"].shape[-1], train_env.action_spec.shape[-1]
         self.seconds: dict[str, list[float]] = {}  # part -> seconds per unit, one entry per round
         self.cpu_seconds: dict[str, list[float]] = {}  # the same in process CPU time (all threads)
@@ -189,7 +191,7 @@ class Setup:
         return {"cpu_iteration_s": cpu_iteration_s, "cpu_run_h": cpu_iteration_s * cfg.iterations / 3600,"env": cfg.env.id, "iterations": cfg.iterations, "parts": parts, "iteration_s": iteration_s, "run_s": run_s,
                 "run_h": run_s / 3600, "goal": "20 iterations <= 4 h", "met": run_s <= 4 * 3600,
                 "config": {"td3.fast": cfg.td3.fast, "td3.num_threads": cfg.td3.num_threads, "direct_writes": self.buffer.direct_writes, "es_mirrored": not self.reference,
-                           "es_threaded_forward": getattr(self.es_collector.backend, "threaded_forward", None)}}
+                           "es_workers": len(getattr(self.es_collector.backend, "workers", []))}}
 
 
 def run(env: str = "halfcheetah", frames: int = 2000, generations: int = 2, capacity: int | None = None,

@@ -31,14 +31,14 @@ def population(env_id: str, members: int, sigma: float, seed: int = 0):
     return PopulationActor(actor), params.contiguous()
 
 
-@pytest.mark.parametrize("threaded_forward", [True, False])
+@pytest.mark.parametrize("workers", [2, 1])
 @pytest.mark.parametrize("env_id", ENV_IDS)
-def test_same_episodes_as_gym_backend(env_id, threaded_forward):
-    steps, members = 120, 16 if threaded_forward else 6  # the threaded forward starts at 16 members
+def test_same_episodes_as_gym_backend(env_id, workers):
+    steps, members = 120, 16 if workers == 2 else 6
     policy, params = population(env_id, members, sigma=0.3)
     seeds = [11 * p + 3 for p in range(members)]
     reference = GymBackend(env_id, policy, max_episode_steps=steps).rollout(params, seeds)
-    batched = MujocoBatchBackend(env_id, policy, max_episode_steps=steps, threaded_forward=threaded_forward).rollout(params, seeds)
+    batched = MujocoBatchBackend(env_id, policy, max_episode_steps=steps, nthread=2, workers=workers).rollout(params, seeds)
 
     assert torch.equal(batched.lengths, reference.lengths)
     torch.testing.assert_close(batched.returns, reference.returns, rtol=1e-6, atol=1e-6)
@@ -76,7 +76,8 @@ def test_fixed_actions_match_a_raw_gymnasium_loop(env_id):
     actions = rng.uniform(env.action_space.low, env.action_space.high, (members, steps, env.action_space.shape[0]))
     actions = actions.astype(np.float32)
     seeds = [5, 6, 7]
-    backend = MujocoBatchBackend(env_id, ScriptedActions(actions), max_episode_steps=steps, threaded_forward=False)  # one policy call per step
+    # One chunk: one policy call per step.
+    backend = MujocoBatchBackend(env_id, ScriptedActions(actions), max_episode_steps=steps, workers=1, chunks_per_worker=1)
     generation = backend.rollout(torch.zeros(members, 1), seeds)
     traj_ids = generation.transitions.get(("collector", "traj_ids"))
 
@@ -128,36 +129,38 @@ def test_early_terminated_members_contribute_only_their_steps(env_id):
 
 
 @pytest.mark.parametrize("env_id", ["HalfCheetah-v5", "Walker2d-v5", "Hopper-v5"])
-def test_threaded_forward_gives_the_one_thread_episodes_bit_for_bit(env_id):
-    """The forward over two halves on two threads produces exactly the one-thread loop's
-    generation, odd population and early terminations included."""
-    steps, members = 150, 17  # odd, and above the threaded forward's minimum population
+def test_chunks_and_workers_give_the_one_chunk_episodes_bit_for_bit(env_id):
+    """Two workers on uneven chunks (an odd population) produce exactly the generation of one
+    chunk on one thread, early terminations included."""
+    steps, members = 150, 17
     policy, params = population(env_id, members, sigma=0.3, seed=2)
     seeds = list(range(40, 40 + members))
-    sequential = MujocoBatchBackend(env_id, policy, max_episode_steps=steps, threaded_forward=False).rollout(params, seeds)
-    threaded = MujocoBatchBackend(env_id, policy, max_episode_steps=steps, threaded_forward=True).rollout(params, seeds)
+    one = MujocoBatchBackend(env_id, policy, max_episode_steps=steps, nthread=1, workers=1, chunks_per_worker=1)
+    chunked = MujocoBatchBackend(env_id, policy, max_episode_steps=steps, nthread=2, workers=2, chunks_per_worker=3)
+    assert [len(chunk.members) for chunk in chunked.chunks(members)] == [3, 3, 3, 3, 3, 2]
+    sequential, threaded = one.rollout(params, seeds), chunked.rollout(params, seeds)
     assert torch.equal(threaded.lengths, sequential.lengths)
     assert torch.equal(threaded.returns, sequential.returns)
     for key in KEYS:
         assert torch.equal(threaded.transitions.get(key), sequential.transitions.get(key)), key
     if env_id != "HalfCheetah-v5":
-        assert (sequential.lengths < steps).any()
-    assert len(MujocoBatchBackend(env_id, policy)._forward_blocks(params)) == 2
+        assert (sequential.lengths < steps).any() and len(set(sequential.lengths.tolist())) > 1  # chunks end at different steps
 
 
-@pytest.mark.parametrize("threaded_forward", [True, False])
+@pytest.mark.parametrize("workers", [2, 1])
 @pytest.mark.parametrize("env_id", ["HalfCheetah-v5", "Walker2d-v5"])
-def test_mirrored_forward_gives_the_episodes_of_the_flat_rows(env_id, threaded_forward):
+def test_mirrored_forward_gives_the_episodes_of_the_flat_rows(env_id, workers):
     """An OpenAI-ES population evaluated through its mirrored pairs plays the gym reference's
-    episodes with the same forward; two threads or one, bit for bit. (The pairs' forward equals
-    the flat rows' up to float32 rounding: tests/test_networks.py.)"""
+    episodes with the same forward; chunks of pairs on two workers or one chunk on one, bit for
+    bit. (The pairs' forward equals the flat rows' up to float32 rounding:
+    tests/test_networks.py.)"""
     steps, members = 120, 18
     policy, params = population(env_id, members, sigma=0.3)
     es = OpenES(params[0].clone(), population_size=members, sigma=0.3, generator=torch.Generator().manual_seed(4))
     params = es.ask()
     seeds = [7 * p + 1 for p in range(members)]
     reference = GymBackend(env_id, policy, max_episode_steps=steps).rollout(params, seeds, mirrored=es.mirrored())
-    backend = MujocoBatchBackend(env_id, policy, max_episode_steps=steps, threaded_forward=threaded_forward)
+    backend = MujocoBatchBackend(env_id, policy, max_episode_steps=steps, nthread=2, workers=workers, chunks_per_worker=workers)
     mirrored = backend.rollout(params, seeds, mirrored=es.mirrored())
     assert torch.equal(mirrored.lengths, reference.lengths)
     torch.testing.assert_close(mirrored.returns, reference.returns, rtol=1e-6, atol=1e-6)
@@ -165,9 +168,13 @@ def test_mirrored_forward_gives_the_episodes_of_the_flat_rows(env_id, threaded_f
         torch.testing.assert_close(mirrored.transitions.get(key), reference.transitions.get(key), rtol=1e-5, atol=1e-5)
     flat = backend.rollout(params, seeds)
     assert not torch.equal(flat.transitions.get("action"), mirrored.transitions.get("action"))  # the pairs' forward was used
-    other = MujocoBatchBackend(env_id, policy, max_episode_steps=steps, threaded_forward=not threaded_forward)
+    other = MujocoBatchBackend(env_id, policy, max_episode_steps=steps, nthread=2, workers=3 - workers, chunks_per_worker=1)
     assert torch.equal(other.rollout(params, seeds, mirrored=es.mirrored()).returns, mirrored.returns)
-    assert len(backend._mirrored_blocks(es.mirrored())) == (2 if threaded_forward else 1)
+    chunks = backend.chunks(members, es.mirrored())
+    assert len(chunks) == workers**2
+    for chunk in chunks:  # whole pairs: member k with member K + k
+        pairs = np.arange(chunk.pairs.start, chunk.pairs.stop)
+        assert np.array_equal(chunk.members, np.concatenate([pairs, members // 2 + pairs]))
     if env_id == "Walker2d-v5":
         assert (reference.lengths < steps).any()
 
