@@ -241,7 +241,7 @@ def _random_transitions(n, obs_dim, act_dim):
     return transitions(n, obs_dim, act_dim, torch.Generator().manual_seed(n))
 
 
-def _collector_pair_batches(fast, frames_per_batch, batches, seed=3, env_id="HalfCheetah-v5"):
+def _collector_pair_batches(fast, frames_per_batch, batches, seed=3, env_id="HalfCheetah-v5", noise_moments=None):
     import copy
 
     from torchrl_esrl.envs import make_env
@@ -251,6 +251,10 @@ def _collector_pair_batches(fast, frames_per_batch, batches, seed=3, env_id="Hal
     torch.manual_seed(0)
     actor, critic = make_actor(observation_dim, env.action_spec), make_critic(observation_dim, action_dim)
     td3 = TD3(copy.deepcopy(actor), critic, env.action_spec)
+    if noise_moments is not None:  # AdditiveGaussianModule's mean and std, other than 0 and 1
+        noise = td3.exploration_policy[1]
+        noise.mean.fill_(noise_moments[0])
+        noise.std.fill_(noise_moments[1])
     collector = make_td3_collector(env, td3, frames_per_batch=frames_per_batch, fast=fast)
     assert not fast or collector.numpy_steps is not None, "the numpy steps after the actor's tanh must be the path under test"
     torch.manual_seed(7)  # the exploration noise stream
@@ -258,16 +262,18 @@ def _collector_pair_batches(fast, frames_per_batch, batches, seed=3, env_id="Hal
     return [next(iterator) for _ in range(batches)]
 
 
-@pytest.mark.parametrize("env_id", ["HalfCheetah-v5", "InvertedPendulum-v5"])  # action bounds 1 and 3
-def test_gym_td3_collector_equals_torchrl_collector(env_id):
+@pytest.mark.parametrize(
+    ("env_id", "noise_moments"), [("HalfCheetah-v5", None), ("InvertedPendulum-v5", (0.05, 1.5))]
+)  # action bounds 1 and 3; the noise's own mean and std
+def test_gym_td3_collector_equals_torchrl_collector(env_id, noise_moments):
     """GymTD3Collector (the fast stepping path) yields the transitions TorchRL's GymEnv +
     Collector yield: same seed, same actor, same noise stream -> identical transition keys,
     finished-episode returns included, across episode ends."""
     from torchrl_esrl.data.multibuffer import TRANSITION_KEYS
 
     for frames_per_batch, count in ((1, 130), (25, 6)):
-        reference = torch.cat(_collector_pair_batches(False, frames_per_batch, count, env_id=env_id))
-        fast = torch.cat(_collector_pair_batches(True, frames_per_batch, count, env_id=env_id))
+        reference = torch.cat(_collector_pair_batches(False, frames_per_batch, count, env_id=env_id, noise_moments=noise_moments))
+        fast = torch.cat(_collector_pair_batches(True, frames_per_batch, count, env_id=env_id, noise_moments=noise_moments))
         assert reference["next", "done"].sum() >= 2  # episodes ended inside the window
         for key in (*TRANSITION_KEYS, ("next", "episode_reward")):
             assert torch.equal(reference.get(key), fast.get(key)), (frames_per_batch, key)

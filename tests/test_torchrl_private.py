@@ -7,7 +7,7 @@ import gymnasium
 import pytest
 import torch
 import torchrl
-from tensordict import TensorDict
+from tensordict import LazyStackedTensorDict, TensorDict
 from torchrl.collectors import Collector
 from torchrl.data import (
     LazyTensorStorage,
@@ -107,6 +107,17 @@ def test_unchecked_tensordict_is_what_the_constructor_builds():
     assert (unchecked == checked).all()
 
 
+def test_tensordict_leaves_are_what_get_returns():
+    data = TensorDict({"observation": torch.randn(3, 2), "next": {"reward": torch.randn(3, 1), "done": torch.zeros(3, 1, dtype=torch.bool)}}, batch_size=[3])
+    keys = ["observation", ("next", "reward"), ("next", "done"), ("observation",)]
+    assert all(leaf is data.get(key) for leaf, key in zip(torchrl_private.tensordict_leaves(data, keys), keys))
+    stacked = LazyStackedTensorDict.lazy_stack([data[0], data[1]])  # not a plain TensorDict: read through get
+    for leaf, key in zip(torchrl_private.tensordict_leaves(stacked, keys), keys):
+        assert torch.equal(leaf, stacked.get(key))
+    missing = [("next", "missing"), "missing"]  # what get returns for these, too
+    assert torchrl_private.tensordict_leaves(data, missing) == [data.get(key) for key in missing]
+
+
 def test_append_rows_writes_what_extend_writes():
     torch.manual_seed(0)
     stock, fast = (TensorDictReplayBuffer(storage=LazyTensorStorage(25), batch_size=7) for _ in range(2))
@@ -119,6 +130,9 @@ def test_append_rows_writes_what_extend_writes():
         index = torchrl_private.append_rows(fast, data.clone(), keys)
         assert torch.equal(index, expected)
         assert len(fast) == len(stock)
+        # the last write's cursor, as TorchRL's storage checkpointers and HER read it
+        assert torch.equal(fast.storage._last_cursor, stock.storage._last_cursor)
+        assert fast.storage._last_cursor_index_value.value == stock.storage._last_cursor_index_value.value
         assert (fast.storage.get(slice(0, len(fast))) == stock.storage.get(slice(0, len(stock)))).all()
     assert fast.writer.state_dict() == stock.writer.state_dict()
     assert fast.storage.state_dict()["_len"] == stock.storage.state_dict()["_len"]
