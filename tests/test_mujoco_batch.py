@@ -136,7 +136,7 @@ def test_chunks_and_workers_give_the_one_chunk_episodes_bit_for_bit(env_id):
     policy, params = population(env_id, members, sigma=0.3, seed=2)
     seeds = list(range(40, 40 + members))
     one = MujocoBatchBackend(env_id, policy, max_episode_steps=steps, nthread=1, workers=1, chunks_per_worker=1)
-    chunked = MujocoBatchBackend(env_id, policy, max_episode_steps=steps, nthread=2, workers=2, chunks_per_worker=3)
+    chunked = MujocoBatchBackend(env_id, policy, max_episode_steps=steps, nthread=2, workers=2, chunks_per_worker=3, min_chunk=1)
     assert [len(chunk.members) for chunk in chunked.chunks(members)] == [3, 3, 3, 3, 3, 2]
     sequential, threaded = one.rollout(params, seeds), chunked.rollout(params, seeds)
     assert torch.equal(threaded.lengths, sequential.lengths)
@@ -160,7 +160,7 @@ def test_mirrored_forward_gives_the_episodes_of_the_flat_rows(env_id, workers):
     params = es.ask()
     seeds = [7 * p + 1 for p in range(members)]
     reference = GymBackend(env_id, policy, max_episode_steps=steps).rollout(params, seeds, mirrored=es.mirrored())
-    backend = MujocoBatchBackend(env_id, policy, max_episode_steps=steps, nthread=2, workers=workers, chunks_per_worker=workers)
+    backend = MujocoBatchBackend(env_id, policy, max_episode_steps=steps, nthread=2, workers=workers, chunks_per_worker=workers, min_chunk=2)
     mirrored = backend.rollout(params, seeds, mirrored=es.mirrored())
     assert torch.equal(mirrored.lengths, reference.lengths)
     torch.testing.assert_close(mirrored.returns, reference.returns, rtol=1e-6, atol=1e-6)
@@ -177,6 +177,18 @@ def test_mirrored_forward_gives_the_episodes_of_the_flat_rows(env_id, workers):
         assert np.array_equal(chunk.members, np.concatenate([pairs, members // 2 + pairs]))
     if env_id == "Walker2d-v5":
         assert (reference.lengths < steps).any()
+
+
+def test_chunk_counts():
+    """Up to two chunks per worker, of at least ``min_chunk`` members unless a worker would idle."""
+    policy, _ = population("HalfCheetah-v5", 2, sigma=0.0)
+    backend = MujocoBatchBackend("HalfCheetah-v5", policy, nthread=2)  # two workers, two chunks each, min_chunk 16
+    assert [len(c.members) for c in backend.chunks(120)] == [30] * 4
+    assert [len(c.members) for c in backend.chunks(40)] == [20, 20]
+    assert [len(c.members) for c in backend.chunks(5)] == [3, 2]
+    assert [len(c.members) for c in backend.chunks(1)] == [1]
+    one = MujocoBatchBackend("HalfCheetah-v5", policy, nthread=1)
+    assert len(one.workers) == 1 and [len(c.members) for c in one.chunks(120)] == [60, 60]
 
 
 def test_registered_and_chosen_by_default():
