@@ -82,8 +82,8 @@ class GymTD3Collector:
         # Bounded.project is clamp(low, high) when out of the box and the identity inside: clamp.
         self.action_low, self.action_high = self.action_spec.space.low, self.action_spec.space.high
         # The elementwise steps after the actor's last tanh (TanhModule's affine map, the noise's
-        # scale, the sum, the clamp) on numpy views of the same float32 tensors, or None where
-        # numpy would not compute exactly what torch does (another dtype or device, TanhModule's clamp).
+        # std, mean and scale, the sum, the clamp) on numpy views of the same float32 tensors, or None
+        # where numpy would not compute exactly what torch does (another dtype or device, TanhModule's clamp).
         steps = (*self.squash_bounds, self.action_low, self.action_high, noise.sigma, noise.mean, noise.std)
         exact = not self.tanh_module.clamp and all(t.dtype == torch.float32 and t.device.type == "cpu" for t in steps)
         self.numpy_steps = tuple(t.detach().numpy() for t in steps) if exact else None
