@@ -236,17 +236,8 @@ class MujocoBatchBackend:
     def rollout(self, params: torch.Tensor, seeds: Sequence[int], mirrored: Mirrored | None = None) -> Generation:
         """One episode per row of ``params``; with ``mirrored`` (the same population as pairs) the
         forward reads each pair's noise once."""
-        population, horizon = params.shape[0], self.horizon
-        # Padded outputs. One observation trajectory per member serves as both "observation"
-        # (steps 0..T-1) and "next/observation" (steps 1..T): no duplicate copies.
-        out = {
-            "obs_traj": np.zeros((population, horizon + 1, self.observation_dim), dtype=np.float32),
-            "actions": np.zeros((population, horizon, self.action_dim), dtype=np.float32),
-            "rewards": np.zeros((population, horizon)),
-            "terminated": np.zeros((population, horizon), dtype=bool),
-            "truncated": np.zeros((population, horizon), dtype=bool),
-            "lengths": np.zeros(population, dtype=np.int64),
-        }
+        population = params.shape[0]
+        out = self._padded(population)
 
         def play(worker: _Worker, chunk: _Chunk) -> None:
             episodes = self._play(worker, params, [int(seeds[m]) for m in chunk.members], mirrored, chunk)
@@ -260,6 +251,19 @@ class MujocoBatchBackend:
             obs_traj[:, :-1], out["actions"], obs_traj[:, 1:], out["rewards"], out["terminated"], out["truncated"], out["lengths"], returns
         )
         return Generation(torch.as_tensor(returns), torch.as_tensor(out["lengths"]), transitions)
+
+    def _padded(self, members: int) -> dict[str, np.ndarray]:
+        """Padded per-member outputs. One observation trajectory per member serves as both
+        "observation" (steps 0..T-1) and "next/observation" (steps 1..T): no duplicate copies."""
+        horizon = self.horizon
+        return {
+            "obs_traj": np.zeros((members, horizon + 1, self.observation_dim), dtype=np.float32),
+            "actions": np.zeros((members, horizon, self.action_dim), dtype=np.float32),
+            "rewards": np.zeros((members, horizon)),
+            "terminated": np.zeros((members, horizon), dtype=bool),
+            "truncated": np.zeros((members, horizon), dtype=bool),
+            "lengths": np.zeros(members, dtype=np.int64),
+        }
 
     def _policy(self, params: torch.Tensor, mirrored: Mirrored | None, chunk: _Chunk) -> Callable[[np.ndarray], np.ndarray]:
         """The chunk's forward: its members' observations [n, obs] -> their actions [n, act]."""
@@ -303,12 +307,9 @@ class MujocoBatchBackend:
         ctrl = batch.bind("ctrl")
         body_xpos = batch.bind("xpos") if rules.x_from_body is not None else None
 
-        obs_traj = np.zeros((population, horizon + 1, self.observation_dim), dtype=np.float32)
-        actions = np.zeros((population, horizon, self.action_dim), dtype=np.float32)
-        rewards = np.zeros((population, horizon))
-        terminated = np.zeros((population, horizon), dtype=bool)
-        truncated = np.zeros((population, horizon), dtype=bool)
-        lengths = np.zeros(population, dtype=np.int64)
+        episodes = self._padded(population)
+        obs_traj, actions, rewards = episodes["obs_traj"], episodes["actions"], episodes["rewards"]
+        terminated, truncated, lengths = episodes["terminated"], episodes["truncated"], episodes["lengths"]
         x_before = np.empty(population)
         first_obs = np.empty((population, self.observation_dim))
         cfrc_ext = np.zeros((population, self.model.nbody, 6)) if rules.contact_forces else None
@@ -380,4 +381,4 @@ class MujocoBatchBackend:
                 if len(live) == 0:
                     break
 
-        return {"obs_traj": obs_traj, "actions": actions, "rewards": rewards, "terminated": terminated, "truncated": truncated, "lengths": lengths}
+        return episodes
