@@ -1,4 +1,4 @@
-"""Per-phase torch thread counts (docs/performance.md, "Threads").
+"""Per-phase torch thread counts (docs/performance.md, "Threads"), and a job's share of the cores.
 
 OpenMP's wait policy is fixed when torch loads (the recipes choose ``PASSIVE`` for the ES
 phase's sake), but torch's intra-op thread count can change at any time. Each phase runs with
@@ -7,9 +7,12 @@ the caller's afterwards.
 """
 from __future__ import annotations
 
+import os
 from contextlib import contextmanager
 
 import torch
+
+TD3_THREADS = 2  # the TD3 update's best count on the 2-core machine (docs/performance.md); more does not pay at batch 256
 
 
 @contextmanager
@@ -24,3 +27,31 @@ def torch_threads(num_threads: int | None):
         yield
     finally:
         torch.set_num_threads(before)
+
+
+def process_cores() -> int:
+    """The cores this process may run on (its CPU affinity: a Slurm allocation, ``taskset``)."""
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+
+
+def concurrent_jobs(cores: int) -> int:
+    """How many jobs a Hydra launcher runs at once on this machine: joblib's ``n_jobs`` in a
+    multirun (negative counts from the cores, as joblib does), else 1."""
+    from hydra.core.hydra_config import HydraConfig
+    from hydra.types import RunMode
+
+    if not HydraConfig.initialized():
+        return 1
+    hydra = HydraConfig.get()
+    launcher = hydra.get("launcher") or {}
+    if hydra.mode != RunMode.MULTIRUN or "joblib" not in str(launcher.get("_target_", "")).lower():
+        return 1
+    n_jobs = int(launcher.get("n_jobs") or 1)
+    return max(1, n_jobs if n_jobs > 0 else cores + 1 + n_jobs)
+
+
+def job_cores() -> int:
+    """This job's share of the cores: the process's cores divided among the jobs a launcher runs
+    at once beside it (two joblib jobs on 2 cores: one each), so parallel jobs never oversubscribe."""
+    cores = process_cores()
+    return max(1, cores // concurrent_jobs(cores))

@@ -97,7 +97,7 @@ def validate_config(cfg) -> None:
     for field in ("td3.policy_noise", "td3.noise_clip", "td3.exploration_noise"):
         _number(cfg, field, low=0)
     _choice(cfg, "td3.loss_function", LOSS_FUNCTIONS)
-    if cfg.td3.num_threads is not None:  # null: the process's thread count
+    if cfg.td3.num_threads is not None:  # null: the job's share of the cores (torchrl_esrl/threads.py)
         _number(cfg, "td3.num_threads", low=1, integer=True)
     _layers(cfg, "td3.critic_hidden")
     _choice(cfg, "td3.critic_activation", sorted(ACTIVATIONS))

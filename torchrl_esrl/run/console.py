@@ -1,7 +1,9 @@
-"""What a run prints: the resolved config only when asked for, and a plain-words ending.
+"""What a run prints: the resolved config only when asked for, its progress, and a plain-words ending.
 
-The console is kept for the progress bar; the resolved config is in the run directory anyway
-(Hydra's ``.hydra/config.yaml``, and every checkpoint).
+Progress (``logger.progress=true``) is a tqdm bar in a terminal; when the output goes to a file
+(``nohup``, Slurm, CI, ``> log``) it is one plain line per iteration instead (:func:`iteration_line`),
+so a log stays small and greppable. The resolved config is in the run directory anyway (Hydra's
+``.hydra/config.yaml``, and every checkpoint).
 """
 from __future__ import annotations
 
@@ -23,6 +25,29 @@ def print_config(cfg: DictConfig) -> None:
     """Print the resolved config if ``logger.print_config=true`` (called once at start-up)."""
     if cfg.logger.print_config:
         print(OmegaConf.to_yaml(cfg, resolve=True))
+
+
+def returns_text(row: dict, initial_return: float | None) -> str:
+    """The returns of a ``metrics.csv`` row in words: the returned policy, then each learner's."""
+    learners = "".join(f", {name} {row[key]:.1f}" for name, key in (("TD3 actor", "td3_eval_return"), ("ES mean", "es_eval_return")) if key in row)
+    initial = f" (initial {initial_return:.1f})" if initial_return is not None else ""
+    return f"return {row['eval_return']:.1f}{learners}{initial}"
+
+
+def iteration_line(row: dict, iterations: int, initial_return: float | None) -> str:
+    """One plain line for a finished iteration (a log that is not a terminal): iteration, frames,
+    returns, the overwrite decision (ES-TD3Buffers) and the elapsed time."""
+    seconds = int(row["wall_time_s"])
+    parts = [
+        f"iteration {row['iteration'] + 1}/{iterations}",
+        f"TD3 frames {row['td3_frames']}",
+        f"ES frames {row['es_frames']}",
+        returns_text(row, initial_return),
+    ]
+    if "overwritten" in row:
+        parts.append("ES mean overwritten" if row["overwritten"] else "ES mean kept")
+    parts.append(f"elapsed {seconds // 3600}:{seconds // 60 % 60:02d}:{seconds % 60:02d}")
+    return " | ".join(parts)
 
 
 def final_lines(summary: dict, run_dir: str | Path) -> str:

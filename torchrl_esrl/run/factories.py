@@ -11,7 +11,8 @@ import torch
 from omegaconf import DictConfig
 
 from torchrl_esrl.data.multibuffer import MultiBuffer
-from torchrl_esrl.envs import make_env
+from torchrl_esrl.collectors.backends import default_backend
+from torchrl_esrl.envs import make_env, resolve_env_id
 from torchrl_esrl.es.openes import OpenES
 from torchrl_esrl.collectors.es_collector import ESCollector
 from torchrl_esrl.modules.networks import flat_parameters, make_actor, make_critic
@@ -21,6 +22,7 @@ from torchrl_esrl.algorithm.overwrite import OverwriteRule
 from torchrl_esrl.collectors.td3_collector import make_td3_collector
 from torchrl_esrl.objectives.td3 import TD3
 from torchrl_esrl.data.threshold import Threshold
+from torchrl_esrl.threads import TD3_THREADS, job_cores
 
 
 def make_train_env(cfg: DictConfig):
@@ -62,7 +64,7 @@ def make_td3(cfg: DictConfig, actor, critic, action_spec) -> TD3:
         exploration_noise=c.exploration_noise,
         loss_function=c.loss_function,
         fast=c.fast,
-        num_threads=c.num_threads,
+        num_threads=c.num_threads if c.num_threads is not None else min(TD3_THREADS, job_cores()),
     )
     if c.random_frames > 0:
         td3.exploration_policy = RandomWarmup(td3.exploration_policy, action_spec, c.random_frames, seed=int(cfg.seed) + 3)
@@ -127,12 +129,18 @@ def make_cem(cfg: DictConfig, actor):
 
 
 def make_es_collector(cfg: DictConfig, actor) -> ESCollector:
-    backend_kwargs = {}
-    if cfg.es.backend == "ray":  # offspring evaluated on a Ray cluster, see the `ray` config section
+    """The ES collector on ``es.backend``; ``mujoco_batch`` steps on this job's share of the cores
+    (:func:`~torchrl_esrl.threads.job_cores`)."""
+    backend, backend_kwargs = cfg.es.backend, {}
+    if backend == "auto":
+        backend = default_backend(resolve_env_id(cfg.env.id))
+    if backend == "ray":  # offspring evaluated on a Ray cluster, see the `ray` config section
         from torchrl_esrl.collectors.ray_backend import ray_backend_kwargs
 
         backend_kwargs = ray_backend_kwargs(cfg)
-    return ESCollector(cfg.env.id, cpu_actor(actor), backend=cfg.es.backend, max_episode_steps=cfg.env.max_episode_steps, seed=int(cfg.seed) + 2, **backend_kwargs)
+    elif backend == "mujoco_batch":
+        backend_kwargs = {"nthread": job_cores()}
+    return ESCollector(cfg.env.id, cpu_actor(actor), backend=backend, max_episode_steps=cfg.env.max_episode_steps, seed=int(cfg.seed) + 2, **backend_kwargs)
 
 
 def make_threshold(cfg: DictConfig) -> Threshold:

@@ -28,6 +28,7 @@ from torchrl_esrl.envs import quiet_logs
 from torchrl_esrl.collectors.es_collector import ESCollector
 from torchrl_esrl.modules.networks import flat_parameters
 from torchrl_esrl.report import plot_run
+from torchrl_esrl.run.console import returns_text
 from torchrl_esrl.run.determinism import seed_everything
 from torchrl_esrl.run.factories import cpu_actor
 from torchrl_esrl.run.metrics import MetricsLog, write_json
@@ -65,6 +66,7 @@ class RunHarness:
         self.bar = None  # the progress bar, set by Run.iterations
         self.returns_text = ""  # the last evaluation, shown on the bar
         self.last_row: dict = {}
+        self.threads: dict[str, int] = {}  # the phases' thread counts (Run.resume), for summary.json
 
     @property
     def wall_time_s(self) -> float:
@@ -106,8 +108,7 @@ class RunHarness:
         }
         self.log_.log(row)
         self.last_row = row
-        learners = "".join(f", {name} {row[key]:.1f}" for name, key in (("TD3 actor", "td3_eval_return"), ("ES mean", "es_eval_return")) if key in row)
-        self.returns_text = f"return {eval_return:.1f}{learners} (initial {self.initial_return:.1f})"
+        self.returns_text = returns_text(row, self.initial_return)
         self.show_phase("evaluated")
         return row
 
@@ -138,6 +139,8 @@ class RunHarness:
         if alias:
             summary[alias] = summary["final_return"]
         summary["initial_return"] = self.initial_return
+        if self.threads:
+            summary["threads"] = self.threads
         summary["wall_time_s"] = self.wall_time_s
         write_json(self.run_dir / "summary.json", summary)
         plot_run(self.run_dir)  # learning_curve.png

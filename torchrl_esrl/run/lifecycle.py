@@ -24,7 +24,7 @@ from tqdm.auto import tqdm
 
 from torchrl_esrl.errors import ConfigError
 from torchrl_esrl.run.checkpoint import CHECKPOINT_DIR, RunCheckpoint
-from torchrl_esrl.run.console import final_lines, print_config
+from torchrl_esrl.run.console import final_lines, iteration_line, print_config
 from torchrl_esrl.run.determinism import make_deterministic
 from torchrl_esrl.run.harness import RunHarness
 from torchrl_esrl.run.progress import RunProgress
@@ -51,19 +51,26 @@ class Run(RunHarness):
         """Evaluate ``actor``'s architecture; checkpoint ``components`` (name -> object with
         ``state_dict``/``load_state_dict``) and restore them from the last checkpoint, if any."""
         self.attach_actor(actor)
+        self.threads = threads_used(components)
         cfg = self.cfg
         config = OmegaConf.to_container(cfg, resolve=True)
         self.checkpoint = RunCheckpoint(self.run_dir, config, cfg.checkpoint.every_frames, cfg.checkpoint.keep_last, progress=self.progress, evaluator=self.evaluator, **components)
         self.checkpoint.restore()
 
     def iterations(self, desc: str) -> Iterator[int]:
-        """The outer loop from where the run stands; after each iteration's body, a checkpoint."""
+        """The outer loop from where the run stands; after each iteration's body, a checkpoint and,
+        when the output is not a terminal, the iteration's line (:func:`~torchrl_esrl.run.console.iteration_line`)."""
         first, total = self.progress.iteration, int(self.cfg.iterations)
-        self.bar = tqdm(range(first, total), desc=desc, unit="it", initial=first, total=total, disable=not self.cfg.logger.progress)
+        progress = bool(self.cfg.logger.progress)
+        # tqdm's disable=None: a bar on a terminal only; elsewhere one plain line per iteration
+        self.bar = tqdm(range(first, total), desc=desc, unit="it", initial=first, total=total, disable=None if progress else True)
+        lines = progress and self.bar.disable
         for iteration in self.bar:
             yield iteration
             self.progress.finish_iteration()
             self.checkpoint.save()
+            if lines:
+                print(iteration_line(self.last_row, total, self.initial_return), flush=True)
 
     def on_td3_batch(self, frames: int, *_) -> None:
         """``td3_phase``'s ``on_batch`` hook: a checkpoint every ``checkpoint.every_frames`` TD3 frames,
@@ -76,6 +83,18 @@ class Run(RunHarness):
     def on_es_generation(self, index: int) -> None:
         """``es_phase``'s ``on_generation`` hook: the phase on the progress bar."""
         self.show_phase(f"ES {index + 1}/{self.cfg.es.generations_per_iteration} generations")
+
+
+def threads_used(components: dict) -> dict:
+    """The threads a run's phases use (``summary.json``'s ``threads``): the TD3 phase's torch
+    threads and the ES backend's MuJoCo threads, where the run has them."""
+    threads = {}
+    if getattr(components.get("td3"), "num_threads", None) is not None:
+        threads["td3"] = int(components["td3"].num_threads)
+    es_threads = getattr(getattr(components.get("es_collector"), "backend", None), "nthread", None)
+    if es_threads is not None:
+        threads["es"] = int(es_threads)
+    return threads
 
 
 def recipe_main(train: Callable[[DictConfig, Run], dict], config_name: str, algorithm: str | Callable[[DictConfig], str]) -> Callable[[], None]:
