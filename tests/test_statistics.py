@@ -175,3 +175,12 @@ def test_report_on_recorded_runs_tests_every_pair_and_aggregates_two_tasks(tmp_p
     for path in report["figures"]:  # page width: at most about 10 inches at 120 dpi
         width, height = png_size(path)
         assert width <= 1300 and height <= 1600, (path.name, width, height)
+
+
+def test_a_row_of_one_run_is_not_tested_and_stays_out_of_the_holm_family():
+    assert all(math.isnan(v) for v in permutation_test([1.0], [2.0, 3.0])[:1])
+    runs = [run_record("A", "td3", s, 10.0 + s) for s in range(5)] + [run_record("A", "es", s, 100.0 + s) for s in range(5)]
+    runs += [run_record("A", "cem_rl", 0, 50.0)]
+    rows = {(r["algorithm"], r["other_algorithm"]): r for r in pairwise_table(runs)}
+    assert math.isnan(rows[("td3", "cem_rl")]["p_value"]) and not rows[("td3", "cem_rl")]["difference"]
+    assert rows[("td3", "es")]["p_holm"] == pytest.approx(2 / 252)  # the only tested pair: a family of one

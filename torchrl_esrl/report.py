@@ -144,10 +144,12 @@ def permutation_test(x, y, seed: int = 0) -> tuple[float, int, bool]:
     one of the C(n + m, n) relabelings, when they number at most ``EXACT_PERMUTATIONS`` (252 for
     5 vs 5); else 100,000 random relabelings. Returns (p, relabelings used, exact). scipy's
     two-sided p is twice the smaller one-sided p, capped at 1: 2/252 for two fully separated
-    5-vs-5 samples."""
+    5-vs-5 samples. A sample of one run is not tested (scipy needs two): (NaN, 0, False)."""
     from scipy import stats
 
     x, y = np.asarray(x, dtype=float), np.asarray(y, dtype=float)
+    if len(x) < 2 or len(y) < 2:
+        return math.nan, 0, False
     relabelings = math.comb(len(x) + len(y), len(x))
     exact = relabelings <= EXACT_PERMUTATIONS
     result = stats.permutation_test((x, y), _mean_difference, permutation_type="independent", vectorized=True,
@@ -304,7 +306,8 @@ PAIRWISE_COLUMNS = ("env", "algorithm", "ratio", "other_algorithm", "other_ratio
 def pairwise_table(runs: list[dict]) -> list[dict]:
     """Per env, every pair of rows (TD3-actor rows left out: same runs as their row): the
     permutation test of :func:`permutation_test` on the final returns, and Holm's correction
-    across that env's pairs. ``difference`` is True only when the corrected p < ``SIGNIFICANCE``."""
+    across that env's tested pairs (a row of one run is not tested: NaN). ``difference`` is True
+    only when the corrected p < ``SIGNIFICANCE``."""
     groups = table_groups(runs)
     rows = []
     for env in sorted({key[0] for key in groups}):
@@ -318,8 +321,12 @@ def pairwise_table(runs: list[dict]) -> list[dict]:
                 env_rows.append({"env": env, "algorithm": first[0], "ratio": first[1], "other_algorithm": second[0], "other_ratio": second[1],
                                  "runs": len(x), "other_runs": len(y), "mean_difference": float(np.mean(x) - np.mean(y)),
                                  "relabelings": relabelings, "exact": exact, "p_value": p_value})
-        for row, adjusted in zip(env_rows, holm([r["p_value"] for r in env_rows]) if env_rows else []):
+        tested = [r for r in env_rows if not math.isnan(r["p_value"])]  # Holm's family: the pairs that were tested
+        for row, adjusted in zip(tested, holm([r["p_value"] for r in tested]) if tested else []):
             row.update(p_holm=float(adjusted), difference=bool(adjusted < SIGNIFICANCE))
+        for row in env_rows:
+            row.setdefault("p_holm", math.nan)
+            row.setdefault("difference", False)
         rows += env_rows
     return rows
 
@@ -330,17 +337,20 @@ def write_pairwise_table(rows: list[dict], out_dir: Path) -> tuple[Path, Path]:
     _write_csv(csv_path, PAIRWISE_COLUMNS, rows)
     lines = ["| env | row | other row | runs | mean difference | p (permutation) | p (Holm) | difference? |", "|---|---|---|---|---:|---:|---:|---|"]
     for r in rows:
-        exact = "" if r["exact"] else " (random relabelings)"
+        if math.isnan(r["p_value"]):
+            p_text, holm_text = "not tested (one run)", "-"
+        else:
+            p_text, holm_text = f"{r['p_value']:.4f}" + ("" if r["exact"] else " (random relabelings)"), f"{r['p_holm']:.4f}"
         lines.append(f"| {r['env']} | {label(r['algorithm'], r['ratio'])} | {label(r['other_algorithm'], r['other_ratio'])} | {r['runs']} / {r['other_runs']} | "
-                     f"{r['mean_difference']:.1f} | {r['p_value']:.4f}{exact} | {r['p_holm']:.4f} | {'**yes**' if r['difference'] else 'no'} |")
+                     f"{r['mean_difference']:.1f} | {p_text} | {holm_text} | {'**yes**' if r['difference'] else 'no'} |")
     families = defaultdict(int)
     for r in rows:
-        families[r["env"]] += 1
+        families[r["env"]] += not math.isnan(r["p_value"])
     lines += [
         "",
         "Two-sided permutation test of the difference of the mean final returns (scipy.stats.permutation_test,",
         "independent samples): exact over all C(n + m, n) relabelings of the runs (252 for 5 vs 5, smallest",
-        "possible p = 2/252 = 0.0079). Holm's correction across the pairs of one task ("
+        "possible p = 2/252 = 0.0079). Holm's correction across the tested pairs of one task ("
         + ", ".join(f"{env}: {count}" for env, count in sorted(families.items())) + " pairs).",
         f"A difference is called one only when the Holm-corrected p is below {SIGNIFICANCE}.",
     ]
@@ -679,7 +689,7 @@ def plot_buffer_sizes(runs: list[dict], out_dir: Path) -> list[Path]:
                 ax.set_xlabel("end of iteration")
                 ax.set_ylabel("items (log)")
                 ax.grid(alpha=0.3, which="both")
-            axes[c * len(BUFFERS)].legend(loc="lower right", framealpha=0.85)
+            axes[c * len(BUFFERS) + len(BUFFERS) - 1].legend(loc="lower right", framealpha=0.85)  # noisy grows alike in every run: its lower right is free
         fig.suptitle(f"{env}: buffer sizes per run (TD3 learns once every buffer with a share holds K)", fontsize=10)
         fig.tight_layout()
         paths.append(_save(fig, out_dir / f"buffers_{env}.png"))
@@ -758,13 +768,13 @@ def plot_es_vs_td3(runs: list[dict], out_dir: Path) -> list[Path]:
                 if lab not in handles:
                     handles[lab] = h
                     labels.append(lab)
+        fig.suptitle(f"{env}: {label(algorithm, ratio)}, TD3 actor vs ES mean per run", fontsize=10)
+        fig.tight_layout()
         if legend_cell:
             axes[len(group)].axis("off")
             axes[len(group)].legend([handles[lab] for lab in labels], labels, loc="center")
-        else:
-            axes[0].legend([handles[lab] for lab in labels], labels, loc="best")
-        fig.suptitle(f"{env}: {label(algorithm, ratio)}, TD3 actor vs ES mean per run", fontsize=10)
-        fig.tight_layout()
+        else:  # under the grid (the saved image grows to hold it)
+            fig.legend([handles[lab] for lab in labels], labels, loc="upper center", bbox_to_anchor=(0.5, 0.0), ncol=len(labels), frameon=False)
         paths.append(_save(fig, out_dir / f"es_vs_td3_{env}{_config_suffix(algorithm, ratio)}.png"))
     return paths
 
