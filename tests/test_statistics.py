@@ -184,3 +184,12 @@ def test_a_row_of_one_run_is_not_tested_and_stays_out_of_the_holm_family():
     rows = {(r["algorithm"], r["other_algorithm"]): r for r in pairwise_table(runs)}
     assert math.isnan(rows[("td3", "cem_rl")]["p_value"]) and not rows[("td3", "cem_rl")]["difference"]
     assert rows[("td3", "es")]["p_holm"] == pytest.approx(2 / 252)  # the only tested pair: a family of one
+
+
+def test_bootstrap_intervals_are_a_function_of_their_data():
+    x, y = [2533.0, 179.7, 2925.7, 1501.7, 2681.3], [736.1, 311.2, 1481.7, 1190.6, 2270.7]
+    first = (iqm_confidence_interval(x), probability_of_improvement(x, y))
+    for draw in range(4):  # whatever the global numpy stream holds
+        np.random.seed(draw)
+        np.random.random(draw * 7 + 1)
+        assert (iqm_confidence_interval(x), probability_of_improvement(x, y)) == first

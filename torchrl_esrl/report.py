@@ -93,11 +93,20 @@ def _rliable():
 
 
 def _interval(score_dict: dict, statistic, seed: int):
-    """rliable's stratified-bootstrap point estimate and 95% percentile CI of ``statistic``."""
+    """rliable's stratified-bootstrap point estimate and 95% percentile CI of ``statistic``.
+
+    rliable 1.2's bootstraps draw their resamples from numpy's global stream (``np.random.choice``
+    in ``update_indices``), not from the ``random_state`` they are given: the global stream is
+    seeded with ``seed`` for the call and restored after it, so a CI is a function of its data."""
     library, _ = _rliable()
-    with warnings.catch_warnings():  # arch (under rliable) warns that RandomState is deprecated
-        warnings.simplefilter("ignore", FutureWarning)
-        points, intervals = library.get_interval_estimates(score_dict, statistic, reps=BOOTSTRAP_REPS, random_state=np.random.RandomState(seed))
+    state = np.random.get_state()
+    try:
+        np.random.seed(seed)
+        with warnings.catch_warnings():  # arch (under rliable) warns that RandomState is deprecated
+            warnings.simplefilter("ignore", FutureWarning)
+            points, intervals = library.get_interval_estimates(score_dict, statistic, reps=BOOTSTRAP_REPS, random_state=np.random.RandomState(seed))
+    finally:
+        np.random.set_state(state)
     (key,) = score_dict
     return float(np.ravel(points[key])[0]), float(np.ravel(intervals[key])[0]), float(np.ravel(intervals[key])[-1])
 
