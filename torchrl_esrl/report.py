@@ -12,9 +12,16 @@ runs) is searched recursively.
 - Improvement table: per env, the probability that ES-TD3Buffers (paper ratio) beats each other
   row on a run drawn at random from each (``rliable``'s probability of improvement, a
   Mann-Whitney statistic), with its 95% stratified-bootstrap CI.
-- Learning curves: ``eval_return`` against TD3 frames, mean over seeds, min-max band shaded.
-  OpenAI-ES has no TD3 frames; its checkpoints are drawn at the TD3 frames ES-TD3Buffers has
-  at the same iteration (``(iteration + 1) x frames_per_iteration``).
+- Pairwise table: per env, every pair of rows: exact permutation test of the difference of mean
+  final returns (scipy), Holm's correction across the env's pairs; a difference is called one
+  only when the corrected p < 0.05.
+- Aggregate table (2+ envs with a TD3 row): rliable's aggregate IQM and probability of
+  improvement on scores normalised per env as (final - random) / (TD3 - random).
+- Figures: learning curves against TD3 frames and against TD3 + ES frames (mean over seeds, 95%
+  bootstrap CI of the mean; panels of at most five lines), buffer sizes per run, the TD3 actor vs
+  the ES mean per run, ratio sweep, hard vs soft overwrite, the aggregate. OpenAI-ES has no TD3
+  frames; on the TD3-frame axis its checkpoints are drawn at the TD3 frames ES-TD3Buffers has at
+  the same iteration (``(iteration + 1) x frames_per_iteration``).
 """
 from __future__ import annotations
 
@@ -285,7 +292,8 @@ def write_improvement_table(rows: list[dict], out_dir: Path) -> tuple[Path, Path
         "",
         f"Probability of improvement (Agarwal et al. 2021, rliable): the chance that a run of ES-TD3Buffers {PAPER_RATIO}",
         "ends with a higher final return than a run of the row, ties counting half; 0.5 = no difference.",
-        "A CI that excludes 0.5 is a difference at the 95% level. CIs: stratified bootstrap over runs.",
+        "CIs: stratified bootstrap over runs. A difference is called one only by the Holm-corrected permutation",
+        "tests of pairwise.md, not by a CI here.",
     ]
     md_path.write_text("\n".join(lines) + "\n")
     return csv_path, md_path
