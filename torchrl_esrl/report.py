@@ -685,16 +685,20 @@ BUFFERS = (("good_size", "good"), ("bad_size", "bad"), ("noisy_size", "noisy"))
 def plot_buffer_sizes(runs: list[dict], out_dir: Path) -> list[Path]:
     """``buffers_<env>.png``: items in the good, bad and noisy buffers at the end of each iteration,
     one panel per buffer and one line per seed, for each three-buffer configuration (one panel row
-    each), with K (``buffer.min_size``): TD3 learns once every buffer with a share holds K."""
+    each), with K (``buffer.min_size``): with ``buffer.renormalize=false`` (Algorithm 1) TD3 learns
+    once every buffer with a share holds K; the title says which rule the runs used."""
     paths = []
     for env, by_config in sorted(_curve_groups(runs).items()):
         configs = [key for key in sorted(by_config, key=row_order) if key[0] in ES_TD3_BUFFERS and all("good_size" in r["metrics"][0] for r in by_config[key])]
         if not configs:
             continue
         fig, axes = _grid(len(configs) * len(BUFFERS), height=2.6)
+        rules = set()
         for c, key in enumerate(configs):
             group = sorted(by_config[key], key=lambda r: r["summary"]["seed"])[:MAX_LINES]
-            min_size = _run_config(group[0]).get("buffer", {}).get("min_size")
+            buffer_cfg = _run_config(group[0]).get("buffer", {})
+            min_size = buffer_cfg.get("min_size")
+            rules.add(buffer_cfg.get("renormalize"))
             for (column, name), ax in zip(BUFFERS, axes[c * len(BUFFERS):]):
                 for run in group:
                     iterations = [row["iteration"] + 1 for row in run["metrics"]]
@@ -707,7 +711,9 @@ def plot_buffer_sizes(runs: list[dict], out_dir: Path) -> list[Path]:
                 ax.set_ylabel("items (log)")
                 ax.grid(alpha=0.3, which="both")
             axes[c * len(BUFFERS) + len(BUFFERS) - 1].legend(loc="lower right", framealpha=0.85)  # noisy grows alike in every run: its lower right is free
-        fig.suptitle(f"{env}: buffer sizes per run (TD3 learns once every buffer with a share holds K)", fontsize=10)
+        rule = {frozenset({False}): "TD3 learns once every buffer with a share holds K",
+                frozenset({True}): "TD3 learns from the buffers that hold K, ratio renormalised"}.get(frozenset(rules), "K: the readiness size")
+        fig.suptitle(f"{env}: buffer sizes per run ({rule})", fontsize=10)
         fig.tight_layout()
         paths.append(_save(fig, out_dir / f"buffers_{env}.png"))
     return paths
