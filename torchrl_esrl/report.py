@@ -419,7 +419,7 @@ def aggregate_table(runs: list[dict], reference: tuple[str, str] = ("es_td3_buff
     scores, tasks = normalised_scores(runs)
     if len(tasks) < 2:
         return []
-    library, metrics = _rliable()
+    _, metrics = _rliable()
     rows = []
     for key, matrix in scores.items():
         iqm, low, high = _interval({"row": matrix}, lambda x: np.array([metrics.aggregate_iqm(x)]), 0)
@@ -639,7 +639,12 @@ def plot_learning_curves(runs: list[dict], out_dir: Path) -> list[Path]:
     plt = _pyplot()
     paths = []
     for env, by_config in sorted(_curve_groups(runs).items()):
-        panels = curve_panels(by_config)
+        def drawable(key) -> bool:  # a TD3-actor line needs its runs' td3_eval_return
+            base = (key[0].partition(TD3_ACTOR_SUFFIX)[0], key[1])
+            return TD3_ACTOR_SUFFIX not in key[0] or all("td3_eval_return" in run["metrics"][0] for run in by_config[base])
+
+        panels = [(title, [k for k in rows if drawable(k)]) for title, rows in curve_panels(by_config)]
+        panels = [(title, rows) for title, rows in panels if rows]
         every = sorted({key for _, rows in panels for key in rows}, key=row_order)
         colours = {key: f"C{i % 10}" for i, key in enumerate(every)}
         legend_heights = [0.2 + 0.17 * math.ceil(len(keys) / 2) for _, keys in panels]
