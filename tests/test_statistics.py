@@ -193,3 +193,16 @@ def test_bootstrap_intervals_are_a_function_of_their_data():
         np.random.seed(draw)
         np.random.random(draw * 7 + 1)
         assert (iqm_confidence_interval(x), probability_of_improvement(x, y)) == first
+
+
+def test_a_task_where_td3_stays_at_the_initial_policy_is_left_out_of_the_aggregate(tmp_path):
+    from torchrl_esrl.report import normalisation, write_aggregate_table
+
+    runs = []
+    for env, td3 in (("A", 100.0), ("B", 50.0), ("C", -5.0)):  # C: TD3 below its initial policy (0)
+        runs += [run_record(env, "td3", s, td3 + s) for s in range(3)] + [run_record(env, "es_td3_buffers", s, 60.0 + s) for s in range(3)]
+    assert sorted(normalisation(runs)) == ["A", "B"]
+    rows = aggregate_table(runs)
+    assert all(r["tasks"] == 2 for r in rows)
+    write_aggregate_table(rows, runs, tmp_path)
+    assert "Left out (no TD3 row, no recorded initial returns, or TD3 not above the initial policy): C." in (tmp_path / "aggregate.md").read_text()

@@ -447,6 +447,9 @@ def write_aggregate_table(rows: list[dict], runs: list[dict], out_dir: Path) -> 
         lines.append(f"| {label(r['algorithm'], r['ratio'])} | {r['runs_per_task']} | {r['iqm']:.2f} {_ci_text(r['iqm_ci_low'], r['iqm_ci_high'], 2)} | {probability} |")
     lines += ["", "| task | random (mean initial return) | TD3 (mean final return) |", "|---|---:|---:|"]
     lines += [f"| {env} | {n['random']:.1f} | {n['td3']:.1f} |" for env, n in sorted(norms.items())]
+    left_out = sorted({run["summary"]["env"] for run in runs} - set(norms))
+    if left_out:
+        lines += ["", f"Left out (no TD3 row, no recorded initial returns, or TD3 not above the initial policy): {', '.join(left_out)}."]
     lines += [
         "",
         "Normalised score = (final return - random) / (TD3 - random), per task: 0 is the policy as built (the mean of",
