@@ -2,9 +2,12 @@
 
     python recipes/report.py outputs/ multirun/2026-11-22 --out report/
 
-Writes results.csv and results.md (Table 1: mean, std, median per env x algorithm, plus the IQM
-with a 95% bootstrap CI), runs.csv and runs.md (one row per run), curves_<env>.png,
-es_vs_td3_<env>.png and ratio_sweep_<env>.png.
+Writes results.csv/.md (Table 1: mean, std, median per env x algorithm, plus the IQM with a 95%
+stratified-bootstrap CI), improvement.csv/.md (probability of improvement of ES-TD3Buffers),
+pairwise.csv/.md (exact permutation test of every pair of rows, Holm-corrected per task),
+aggregate.csv/.md and aggregate.png (normalised scores across 2+ tasks), runs.csv/.md (one row per
+run), curves_<env>.png (against TD3 and total frames), buffers_<env>.png, es_vs_td3_<env>*.png,
+ratio_sweep_<env>.png and hard_vs_soft_<env>.png.
 """
 from __future__ import annotations
 

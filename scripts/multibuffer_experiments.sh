@@ -1,47 +1,69 @@
 #!/usr/bin/env bash
-# The experiment set behind docs/results.md, "Does the multi-buffer help?": experiment=multibuffer
-# (conf/experiment/multibuffer.yaml states the budget and its assumed cost), one torch thread per run
-# (OMP_NUM_THREADS=1 and td3.num_threads=1: two runs never oversubscribe the two cores),
-# parallel_jobs runs at a time (default 2: one per core of a 2-core machine).
-#   HalfCheetah-v5 and Walker2d-v5, seeds 0-4 of: ES-TD3Buffers 0.5:0.2:0.3; one shared buffer
-#   (buffer.mode=shared); soft overwrite (overwrite.mode=soft, mix 0.5); TD3 (Fujimoto's uniform warm-up,
-#   K = 5,000 frames: conf/td3.yaml); CEM-RL (one 10-member generation per iteration, 4 x 10,000 frames,
-#   start_frames scaled to 5,000); OpenAI-ES.  Ratio sweep on HalfCheetah: 0.2:0.2:0.6 and 0.8:0.1:0.1,
-#   seeds 0-2 (0.5:0.2:0.3 comes from the main rows).  Runs start seed by seed, so a partial set is balanced.
+# The experiment sets behind docs/results.md, "Does the multi-buffer help?". SET picks the set and its
+# preset (experiment=$SET); one torch thread per run (OMP_NUM_THREADS=1 and td3.num_threads=1: two runs
+# never oversubscribe the two cores), parallel_jobs runs at a time (default 2: one per core of a 2-core
+# machine). Runs start seed by seed, so a partial set is balanced.
+#
+# SET=miniature (conf/experiment/miniature.yaml: the paper's schedule at 4%, K = M/4), 80 runs:
+#   HalfCheetah-v5, Walker2d-v5, Swimmer-v5 and Ant-v5, seeds 0-4 of: ES-TD3Buffers 0.5:0.2:0.3; one
+#   shared buffer (buffer.mode=shared); TD3 (Fujimoto's uniform warm-up, K = 1,000 frames: conf/td3.yaml);
+#   OpenAI-ES.
+# SET=multibuffer (conf/experiment/multibuffer.yaml, the earlier 2% set), 66 runs:
+#   HalfCheetah-v5 and Walker2d-v5, seeds 0-4 of: ES-TD3Buffers 0.5:0.2:0.3; one shared buffer; soft
+#   overwrite (overwrite.mode=soft, mix 0.5); TD3 (warm-up K = 5,000 frames); CEM-RL (one 10-member
+#   generation per iteration, 4 x 10,000 frames, start_frames scaled to 5,000); OpenAI-ES.  Ratio sweep
+#   on HalfCheetah: 0.2:0.2:0.6 and 0.8:0.1:0.1, seeds 0-2 (0.5:0.2:0.3 comes from the main rows).
 #
 # Resumes from what exists: a run whose record is already in $RESULTS is skipped; one that finished in
 # work_dir is recorded; one killed after a checkpoint continues from it (same hydra.run.dir); one killed
 # before any checkpoint starts over. Every finished run's metrics.csv, summary.json and config.yaml are
-# copied to $RESULTS/<env>/<row>_seed<k>/ (commit them; COMMIT=1 commits each one as it lands).
+# copied to $RESULTS/<env>/<row>_seed<k>/ (commit them; COMMIT=1 commits each one as it lands), with
+# timing.txt: one line per attempt (exit status, seconds of the command), so a resumed run's wall-clock
+# is the sum of its lines.
 #
 # Usage: scripts/multibuffer_experiments.sh [work_dir] [parallel_jobs] [extra hydra overrides...]
-#   RESULTS=docs/results/runs/multibuffer  PYTHON=python  COMMIT=0      (environment, defaults shown)
+#   SET=multibuffer  RESULTS=docs/results/runs/$SET  PYTHON=python  COMMIT=0   (environment, defaults shown)
 #   ONLY=<regex> runs only the lines 'env row recipe seed ...' it matches, e.g. ONLY='^walker2d td3 '
-#   Report: python recipes/report.py docs/results/runs/multibuffer --out docs/results/multibuffer
+#   Report: python recipes/report.py docs/results/runs/$SET --out docs/results/$SET
+#   e.g. SET=miniature COMMIT=1 scripts/multibuffer_experiments.sh runs_miniature 2
 set -u
-WORK=${1:-runs_multibuffer}
+SET=${SET:-multibuffer}
+WORK=${1:-runs_$SET}
 JOBS=${2:-2}
 shift $(( $# < 2 ? $# : 2 ))
 cd "$(dirname "$0")/.."
-export WORK EXTRA="$*" RESULTS=${RESULTS:-docs/results/runs/multibuffer} PYTHON=${PYTHON:-python} COMMIT=${COMMIT:-0}
+export SET WORK EXTRA="$*" RESULTS=${RESULTS:-docs/results/runs/$SET} PYTHON=${PYTHON:-python} COMMIT=${COMMIT:-0}
 ONLY=${ONLY:-.}
 mkdir -p "$WORK" "$RESULTS"
 
 runs() {  # env row recipe seed [overrides...], one run per line, in the order they start
-  for seed in 0 1 2 3 4; do
-    for env in halfcheetah walker2d; do
-      echo "$env es_td3 es_td3.py $seed"
-      echo "$env es_td3_shared es_td3.py $seed buffer.mode=shared"
-      echo "$env es_td3_soft es_td3.py $seed overwrite.mode=soft overwrite.mix=0.5"
-      echo "$env td3 td3.py $seed"
-      echo "$env cem_rl cem_rl.py $seed iterations=4 td3.frames_per_iteration=10000 cem.start_frames=5000"
-      echo "$env es es.py $seed"
-    done
-    if [ "$seed" -le 2 ]; then
-      echo "halfcheetah es_td3_ratio_0.2_0.2_0.6 es_td3.py $seed buffer.ratio=[0.2,0.2,0.6]"
-      echo "halfcheetah es_td3_ratio_0.8_0.1_0.1 es_td3.py $seed buffer.ratio=[0.8,0.1,0.1]"
-    fi
-  done
+  case $SET in
+    miniature)
+      for seed in 0 1 2 3 4; do
+        for env in halfcheetah walker2d swimmer ant; do
+          echo "$env es_td3 es_td3.py $seed"
+          echo "$env es_td3_shared es_td3.py $seed buffer.mode=shared"
+          echo "$env td3 td3.py $seed"
+          echo "$env es es.py $seed"
+        done
+      done ;;
+    multibuffer)
+      for seed in 0 1 2 3 4; do
+        for env in halfcheetah walker2d; do
+          echo "$env es_td3 es_td3.py $seed"
+          echo "$env es_td3_shared es_td3.py $seed buffer.mode=shared"
+          echo "$env es_td3_soft es_td3.py $seed overwrite.mode=soft overwrite.mix=0.5"
+          echo "$env td3 td3.py $seed"
+          echo "$env cem_rl cem_rl.py $seed iterations=4 td3.frames_per_iteration=10000 cem.start_frames=5000"
+          echo "$env es es.py $seed"
+        done
+        if [ "$seed" -le 2 ]; then
+          echo "halfcheetah es_td3_ratio_0.2_0.2_0.6 es_td3.py $seed buffer.ratio=[0.2,0.2,0.6]"
+          echo "halfcheetah es_td3_ratio_0.8_0.1_0.1 es_td3.py $seed buffer.ratio=[0.8,0.1,0.1]"
+        fi
+      done ;;
+    *) echo "unknown SET=$SET (miniature | multibuffer)" >&2; return 1 ;;
+  esac
 }
 
 run_one() {
@@ -55,16 +77,18 @@ run_one() {
     mkdir -p "$(dirname "$dir")"
     start=$(date +%s)
     # shellcheck disable=SC2086  # EXTRA: several overrides, split on purpose
-    OMP_NUM_THREADS=1 "$PYTHON" "recipes/$recipe" env="$env" experiment=multibuffer seed="$seed" "$@" $EXTRA \
+    OMP_NUM_THREADS=1 "$PYTHON" "recipes/$recipe" env="$env" experiment="$SET" seed="$seed" "$@" $EXTRA \
       td3.num_threads=1 logger.progress=false hydra.run.dir="$dir" > "$dir.log" 2>&1
     status=$?
-    echo "$env $name: exit $status after $(( $(date +%s) - start )) s" | tee -a "$WORK/timings.txt"
+    mkdir -p "$dir"
+    echo "$env $name: exit $status after $(( $(date +%s) - start )) s" | tee -a "$WORK/timings.txt" >> "$dir/timing.txt"
   fi
   [ -f "$dir/summary.json" ] || return 1
   mkdir -p "$dest"
   cp "$dir/metrics.csv" "$dir/summary.json" "$dest/"
   cp "$dir/.hydra/config.yaml" "$dest/config.yaml"
-  if [ "$COMMIT" = 1 ]; then flock "$WORK/.git.lock" sh -c 'git add "$1" && git commit -q -m "results: $2 (experiment=multibuffer)" -- "$1"' _ "$dest" "$env $name"; fi
+  if [ -f "$dir/timing.txt" ]; then cp "$dir/timing.txt" "$dest/"; fi
+  if [ "$COMMIT" = 1 ]; then flock "$WORK/.git.lock" sh -c 'git add "$1" && git commit -q -m "results: $2 (experiment=$3)" -- "$1"' _ "$dest" "$env $name" "$SET"; fi
 }
 export -f run_one
 

@@ -144,9 +144,24 @@ def test_report_table_matches_the_runs_and_writes_figures(runs, tmp_path):
         others = [float(r["final_return"]) for r in per_run if r["algorithm"] == algorithm and r["ratio"] == ratio] if "/" not in algorithm else None
         if others is not None:
             assert float(row["probability"]) == pytest.approx(statistics.mean(1.0 if mine > o else 0.5 if mine == o else 0.0 for o in others))
-    for name in ("curves_HalfCheetah-v5.png", "es_vs_td3_HalfCheetah-v5.png", "ratio_sweep_HalfCheetah-v5.png", "hard_vs_soft_HalfCheetah-v5.png"):
+    with (tmp_path / "pairwise.csv").open() as handle:  # every pair of rows with runs of their own, one task: one Holm family
+        pairwise = list(csv.DictReader(handle))
+    independent = [key for key in table if "/" not in key[0]]
+    assert len(pairwise) == len(independent) * (len(independent) - 1) // 2
+    for row in pairwise:
+        p, p_holm = float(row["p_value"]), float(row["p_holm"])
+        if "1" in (row["runs"], row["other_runs"]):  # one run: nothing to relabel against, not tested
+            assert math.isnan(p) and math.isnan(p_holm) and row["difference"] == "False"
+        else:  # td3 and es have 2 runs each: C(4, 2) = 6 relabelings, the only tested pair, a family of one
+            assert {row["algorithm"], row["other_algorithm"]} == {"td3", "es"}
+            assert int(row["relabelings"]) == 6 and row["exact"] == "True" and 2 / 6 <= p == p_holm <= 1.0 and row["difference"] == "False"
+    assert not (tmp_path / "aggregate.csv").exists()  # one task: nothing to aggregate
+    figures = ["curves_HalfCheetah-v5.png", "buffers_HalfCheetah-v5.png", "es_vs_td3_HalfCheetah-v5.png", "es_vs_td3_HalfCheetah-v5_soft.png",
+               "es_vs_td3_HalfCheetah-v5_ratio_0.2_0.2_0.6.png", "ratio_sweep_HalfCheetah-v5.png", "hard_vs_soft_HalfCheetah-v5.png"]
+    for name in figures:
         png = (tmp_path / name).read_bytes()
         assert png[:8] == b"\x89PNG\r\n\x1a\n" and len(png) > 10_000, name
+        assert int.from_bytes(png[16:20], "big") <= 1300, name  # page width: at most about 10 inches at 120 dpi
 
 
 @pytest.mark.parametrize("name", ["td3_0", "es_0", "cem_0", "shared_0", "sweep/0"])
