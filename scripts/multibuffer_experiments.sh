@@ -1,8 +1,8 @@
 #!/usr/bin/env bash
 # The experiment sets behind docs/results.md, "Does the multi-buffer help?". SET picks the set and its
-# preset (experiment=$SET); one torch thread per run (OMP_NUM_THREADS=1 and td3.num_threads=1: two runs
-# never oversubscribe the two cores), parallel_jobs runs at a time (default 2: one per core of a 2-core
-# machine). Runs start seed by seed, so a partial set is balanced.
+# preset (experiment=$SET); parallel_jobs runs at a time (default 2: one per core of a 2-core machine),
+# each on its share of the cores (TORCHRL_ESRL_JOBS=parallel_jobs: TD3 and ES threads, torchrl_esrl/threads.py),
+# so two runs never oversubscribe the two cores. Runs start seed by seed, so a partial set is balanced.
 #
 # SET=miniature (conf/experiment/miniature.yaml: the paper's schedule at 4%, K = M/4), 80 runs:
 #   HalfCheetah-v5, Walker2d-v5, Swimmer-v5 and Ant-v5, seeds 0-4 of: ES-TD3Buffers 0.5:0.2:0.3; one
@@ -32,7 +32,7 @@ WORK=${1:-runs_$SET}
 JOBS=${2:-2}
 shift $(( $# < 2 ? $# : 2 ))
 cd "$(dirname "$0")/.."
-export SET WORK EXTRA="$*" RESULTS=${RESULTS:-docs/results/runs/$SET} PYTHON=${PYTHON:-python} COMMIT=${COMMIT:-0}
+export SET WORK JOBS EXTRA="$*" RESULTS=${RESULTS:-docs/results/runs/$SET} PYTHON=${PYTHON:-python} COMMIT=${COMMIT:-0}
 ONLY=${ONLY:-.}
 mkdir -p "$WORK" "$RESULTS"
 
@@ -77,8 +77,9 @@ run_one() {
     mkdir -p "$(dirname "$dir")"
     start=$(date +%s)
     # shellcheck disable=SC2086  # EXTRA: several overrides, split on purpose
-    OMP_NUM_THREADS=1 "$PYTHON" "recipes/$recipe" env="$env" experiment="$SET" seed="$seed" "$@" $EXTRA \
-      td3.num_threads=1 logger.progress=false hydra.run.dir="$dir" > "$dir.log" 2>&1
+    # TORCHRL_ESRL_JOBS: JOBS runs share the machine, each takes its share of the cores (torchrl_esrl/threads.py)
+    TORCHRL_ESRL_JOBS=$JOBS "$PYTHON" "recipes/$recipe" env="$env" experiment="$SET" seed="$seed" "$@" $EXTRA \
+      logger.progress=false hydra.run.dir="$dir" > "$dir.log" 2>&1
     status=$?
     mkdir -p "$dir"
     echo "$env $name: exit $status after $(( $(date +%s) - start )) s" | tee -a "$WORK/timings.txt" >> "$dir/timing.txt"

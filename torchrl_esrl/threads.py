@@ -34,12 +34,18 @@ def process_cores() -> int:
     return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
 
 
+JOBS_VARIABLE = "TORCHRL_ESRL_JOBS"  # jobs started side by side by a script (xargs -P, GNU parallel)
+
+
 def concurrent_jobs(cores: int) -> int:
-    """How many jobs a Hydra launcher runs at once on this machine: joblib's ``n_jobs`` in a
-    multirun (negative counts from the cores, as joblib does), else 1."""
+    """How many jobs run at once on this machine: ``$TORCHRL_ESRL_JOBS`` where a script that starts
+    jobs side by side sets it, else joblib's ``n_jobs`` in a Hydra multirun (negative counts from the
+    cores, as joblib does), else 1."""
     from hydra.core.hydra_config import HydraConfig
     from hydra.types import RunMode
 
+    if os.environ.get(JOBS_VARIABLE):
+        return max(1, int(os.environ[JOBS_VARIABLE]))
     if not HydraConfig.initialized():
         return 1
     hydra = HydraConfig.get()
