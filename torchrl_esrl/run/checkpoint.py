@@ -39,6 +39,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import re
 import shutil
 import sys
@@ -112,10 +113,13 @@ class RunCheckpoint:
         metadata = {"iteration": self.progress.iteration, "td3_frames": self.progress.frames_now, "config": self.config, "algorithm": self.algorithm}
         try:
             return self.rotation.save(self.checkpoint, step=step, metadata=metadata)
-        except OSError as error:
+        except (OSError, RuntimeError) as error:
+            cause = _write_failure(error)
+            if cause is None:
+                raise
             kept = newest_readable(self.run_dir)[0]
             raise CheckpointWriteError(
-                f"could not write a checkpoint in {self.run_dir / CHECKPOINT_DIR} ({error.strerror or error}); run stopped, "
+                f"could not write a checkpoint in {self.run_dir / CHECKPOINT_DIR} ({cause}); run stopped, "
                 f"{f'last good checkpoint kept: {kept.name}' if kept else 'no earlier checkpoint'}; rerun the same command to resume once there is room"
             ) from None
 
@@ -241,6 +245,17 @@ def saved_config(run_dir: str | Path) -> dict | None:
     """The config stored with the newest readable checkpoint of ``run_dir`` (None if it has none)."""
     metadata = saved_metadata(run_dir)
     return None if metadata is None else metadata["config"]
+
+
+def _write_failure(error: BaseException) -> str | None:
+    """The cause of a failed write (an ``OSError``, or torch's ``RuntimeError`` for a memory-mapped
+    file it could not size, which ends in the errno: ``... File too large (27)``); None otherwise."""
+    if isinstance(error, OSError):
+        return error.strerror or str(error)
+    match = re.search(r"\((\d+)\)\s*$", str(error))
+    if match and "file" in str(error):
+        return os.strerror(int(match.group(1)))
+    return None
 
 
 def _first_line(error: BaseException) -> str:

@@ -140,6 +140,6 @@ class RunHarness:
             summary[alias] = summary["final_return"]
         summary["initial_return"] = self.initial_return
         summary["wall_time_s"] = self.wall_time_s
-        plot_run(self.run_dir)  # learning_curve.png
+        plot_run(self.run_dir, summary)  # learning_curve.png
         write_json(self.run_dir / "summary.json", summary)  # last, atomically: a run with a summary has finished
         return summary
