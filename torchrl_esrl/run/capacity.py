@@ -102,7 +102,7 @@ def estimate(cfg, algorithm: str, sizes: EnvSizes) -> Estimate:
         population = int(cfg.cem.population_size if cem else cfg.es.population_size)
         antithetic = bool(cfg.cem.antithetic if cem else cfg.es.antithetic)
         # the population, its noise and, for mirrored sampling, the half drawn before mirroring
-        result.memory["population"] = FLOAT * actor * population * (2 + (0.5 if antithetic else 0))
+        result.memory["population"] = FLOAT * actor * population * (4 + antithetic) // 2
         result.memory["generation"] = population * (sizes.episode_steps or 0) * transition
         result.population_field = "cem.population_size" if cem else "es.population_size"
     return result
