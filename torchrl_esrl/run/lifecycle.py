@@ -123,10 +123,10 @@ class ValidateBeforeRun(Callback):
     (and Hydra's files) to a new directory next to one that holds a run."""
 
     def on_run_start(self, config, **kwargs: Any) -> None:
-        run_dir = config.hydra.run.dir
+        run_dir = Path(str(config.hydra.run.dir)).expanduser()
         if config.get("fresh") and not config.resume:
             run_dir = fresh_run_dir(run_dir)
-            if str(run_dir) != str(config.hydra.run.dir):
+            if run_dir != Path(str(config.hydra.run.dir)).expanduser():
                 print(f"fresh=true: {config.hydra.run.dir} holds a run; this one starts in {run_dir}", file=sys.stderr, flush=True)
                 with read_write(config.hydra):
                     config.hydra.run.dir = str(run_dir)  # run_job reads it next
