@@ -6,8 +6,8 @@
 
 Each run writes metrics.csv, summary.json, the TorchRL logger's files and the final actors into
 its Hydra run directory, and checkpoints into its checkpoints/ folder: rerunning the command with
-the same hydra.run.dir, or resume=<run dir>, continues from the last one
-(torchrl_esrl/run/lifecycle.py).
+the same hydra.run.dir, or resume=<run dir>, continues from the last one; a finished run is left
+as it is, and fresh=true starts a new one next to it (torchrl_esrl/run/lifecycle.py, docs/runs.md).
 """
 from __future__ import annotations
 

@@ -1,8 +1,15 @@
 """The run lifecycle (torchrl_esrl/run/lifecycle.py) on the real recipes in real subprocesses:
-determinism, SIGKILL then resume for every recipe, bad configs as one line, and NaN faults that
-stop the run and keep the last checkpoint loadable."""
+determinism, SIGKILL then resume for every recipe, bad configs as one line, NaN faults that
+stop the run and keep the last checkpoint loadable, and what users do to runs: rerun finished
+ones, kill them in their final stage, damage checkpoints, point a recipe at another run's
+directory, ask for tasks or sizes the algorithm or the machine cannot take, fill the disk."""
+import hashlib
 import importlib.util
+import json
 import os
+import random
+import resource
+import shutil
 import signal
 import subprocess
 import sys
@@ -299,3 +306,281 @@ def test_baseline_killed_then_resumed_gives_the_same_metrics(tmp_path, script, e
     result = run(killed, *extra, script=script)
     assert result.returncode == 0, result.stderr[-3000:]
     assert rows_without_wall_time(killed) == rows_without_wall_time(reference)
+
+
+# ---------------------------------------------------------------- runs that survive what users do
+# Every recipe, finished once with the budget above (iterations=2); CEM-RL with a small population
+# that learns from the first generation.
+RECIPES = {"es_td3.py": [], "td3.py": [], "es.py": [], "cem_rl.py": ["cem.population_size=4", "cem.start_frames=0"]}
+CONFIGS = {"es_td3.py": "config", "td3.py": "td3", "es.py": "es", "cem_rl.py": "cem_rl"}
+ALGORITHMS = {"es_td3.py": "es_td3_buffers", "td3.py": "td3", "es.py": "es", "cem_rl.py": "cem_rl"}
+
+
+@pytest.fixture(scope="module")
+def finished(reference, tmp_path_factory):
+    """``finished(script)``: the run directory of a finished run of that recipe (made once)."""
+    runs = {"es_td3.py": reference}
+
+    def get(script):
+        if script not in runs:
+            run_dir = tmp_path_factory.mktemp(script.removesuffix(".py"))
+            result = run(run_dir, *RECIPES[script], script=script)
+            assert result.returncode == 0, result.stderr[-3000:]
+            runs[script] = run_dir
+        return runs[script]
+
+    return get
+
+
+def tree(run_dir):
+    """Every file of a directory and the SHA-256 of its bytes."""
+    return {str(p.relative_to(run_dir)): hashlib.sha256(p.read_bytes()).hexdigest() for p in sorted(Path(run_dir).rglob("*")) if p.is_file()}
+
+
+def summary_without_wall_time(run_dir):
+    summary = json.loads((Path(run_dir) / "summary.json").read_text())
+    summary.pop("wall_time_s")
+    return summary
+
+
+def killed_after_its_last_checkpoint(source, run_dir):
+    """A copy of the finished run ``source`` as a run killed in its final stage leaves it: all
+    but ``summary.json``, the last file a run writes."""
+    shutil.copytree(source, run_dir)
+    (run_dir / "summary.json").unlink()
+    return run_dir
+
+
+def one_line(result):
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1, result.stderr[-3000:]
+    return lines[0]
+
+
+@pytest.mark.e2e
+@pytest.mark.parametrize("script", list(RECIPES))
+def test_rerunning_a_finished_run_says_so_and_changes_nothing(finished, script):
+    run_dir = finished(script)
+    before = tree(run_dir)
+    result = run(run_dir, *RECIPES[script], script=script)
+    assert result.returncode == 0, result.stderr[-3000:]
+    lines = result.stdout.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("finished:") and str(run_dir / "summary.json") in lines[0], result.stdout
+    assert tree(run_dir) == before  # Hydra's .hydra/ and log included: the check runs before Hydra writes
+
+
+@pytest.mark.e2e
+def test_fresh_run_goes_next_to_the_finished_one(reference, tmp_path):
+    run_dir = tmp_path / "run"
+    shutil.copytree(reference, run_dir)
+    before = tree(run_dir)
+    result = run(run_dir, "fresh=true")
+    assert result.returncode == 0, result.stderr[-3000:]
+    assert f"this one starts in {tmp_path / 'run-2'}" in result.stderr
+    assert tree(run_dir) == before
+    assert rows_without_wall_time(tmp_path / "run-2") == rows_without_wall_time(reference)
+    assert summary_without_wall_time(tmp_path / "run-2") == summary_without_wall_time(reference)
+
+
+KILLS = [("es_td3.py", "final_evaluation"), ("es_td3.py", "summary_write"), ("td3.py", "summary_write"), ("es.py", "final_evaluation"), ("cem_rl.py", "summary_write")]
+
+
+@pytest.mark.e2e
+@pytest.mark.parametrize("script, where", KILLS)
+def test_killed_in_the_final_stage_then_rerun_ends_as_an_uninterrupted_run(finished, tmp_path, script, where):
+    injected = [sys.executable, str(ROOT / "tests" / "inject_kill.py"), where, script, TINY, *RESUME, *RECIPES[script], f"hydra.run.dir={tmp_path}"]
+    killed = subprocess.run(injected, cwd=ROOT, capture_output=True, text=True, timeout=900, env=ENV)
+    assert killed.returncode == -signal.SIGKILL, killed.stderr[-3000:]
+    assert not (tmp_path / "summary.json").exists()
+    assert (tmp_path / "summary.json.tmp").exists() == (where == "summary_write")  # half written, never in place
+    result = run(tmp_path, *RECIPES[script], script=script)
+    assert result.returncode == 0, result.stderr[-3000:]
+    reference = finished(script)
+    assert rows_without_wall_time(tmp_path) == rows_without_wall_time(reference)
+    assert summary_without_wall_time(tmp_path) == summary_without_wall_time(reference)  # frame counts included
+
+
+def damage(checkpoint, how):
+    """Damage one file of a checkpoint directory as a crash or a bad disk would."""
+    if how == "truncated":  # the largest tensor file, cut in half
+        path = max((p for p in checkpoint.rglob("*.memmap")), key=lambda p: p.stat().st_size)
+        os.truncate(path, path.stat().st_size // 2)
+    elif how == "deleted":
+        next(checkpoint.glob("components/*-overwrite/state.json")).unlink()
+    elif how == "garbage_manifest":
+        path = checkpoint / "manifest.json"
+        path.write_bytes(random.Random(0).randbytes(path.stat().st_size))
+    elif how == "garbage_metadata":  # the TensorDict metadata of TD3's state
+        path = next(checkpoint.glob("components/*-td3/state/meta.json"))
+        path.write_bytes(random.Random(1).randbytes(path.stat().st_size))
+
+
+@pytest.mark.e2e
+@pytest.mark.parametrize("how", ["truncated", "deleted", "garbage_manifest", "garbage_metadata"])
+def test_damaged_newest_checkpoint_falls_back_to_the_previous_one(reference, tmp_path, how):
+    run_dir = killed_after_its_last_checkpoint(reference, tmp_path / "run")
+    previous, newest = checkpoints(run_dir)[-2:]
+    damage(run_dir / "checkpoints" / newest, how)
+    result = run(run_dir)
+    assert result.returncode == 0, result.stderr[-3000:]
+    said = [line for line in result.stderr.splitlines() if "cannot be read" in line]
+    assert len(said) == 1 and newest in said[0] and said[0].endswith(f"resuming from {previous}"), result.stderr[-3000:]
+    # the rest of the run as one resumed from the previous checkpoint: the uninterrupted run's records
+    assert rows_without_wall_time(run_dir) == rows_without_wall_time(reference)
+    assert summary_without_wall_time(run_dir) == summary_without_wall_time(reference)
+
+
+@pytest.mark.e2e
+def test_no_readable_checkpoint_stops_with_one_line_and_changes_nothing(reference, tmp_path):
+    run_dir = killed_after_its_last_checkpoint(reference, tmp_path / "run")
+    for name, how in zip(checkpoints(run_dir), ["deleted", "truncated"]):
+        damage(run_dir / "checkpoints" / name, how)
+    before = tree(run_dir)
+    result = run(run_dir)
+    line = one_line(result)
+    assert result.returncode == 2 and line.startswith("config error: hydra.run.dir: no checkpoint in") and str(run_dir / "checkpoints") in line
+    assert tree(run_dir) == before  # no fresh start on top of the old records
+
+
+@pytest.mark.e2e
+@pytest.mark.parametrize(
+    "script, extra, held, asked",
+    [
+        ("td3.py", [], "an es_td3_buffers run on HalfCheetah-v5", "td3 on HalfCheetah-v5"),
+        ("es.py", [], "an es_td3_buffers run on HalfCheetah-v5", "es on HalfCheetah-v5"),
+        ("es_td3.py", ["env=walker2d"], "an es_td3_buffers run on HalfCheetah-v5", "es_td3_buffers on Walker2d-v5"),
+        ("es_td3.py", ["buffer.mode=shared"], "an es_td3_buffers run on HalfCheetah-v5", "es_td3_shared on HalfCheetah-v5"),
+    ],
+)
+def test_run_directory_of_another_run_is_refused_in_one_line(reference, tmp_path, script, extra, held, asked):
+    run_dir = killed_after_its_last_checkpoint(reference, tmp_path / "run")  # what it holds: its checkpoint says
+    before = tree(run_dir)
+    result = run(run_dir, *extra, script=script)
+    line = one_line(result)
+    assert result.returncode == 2 and line.startswith("config error: hydra.run.dir:") and f"holds {held}; asked: {asked}" in line, line
+    assert tree(run_dir) == before
+
+
+@pytest.mark.e2e
+def test_resuming_another_recipes_run_is_refused_in_one_line(finished, tmp_path):
+    td3_run = finished("td3.py")
+    before = tree(td3_run)
+    result = subprocess.run(recipe_command("es_td3.py", f"resume={td3_run}", f"hydra.run.dir={tmp_path / 'here'}"), cwd=ROOT, capture_output=True, text=True, timeout=300, env=ENV)
+    line = one_line(result)
+    assert result.returncode == 2 and f"config error: resume: {td3_run} holds a td3 run on HalfCheetah-v5; asked: es_td3_buffers on HalfCheetah-v5" in line, line
+    assert tree(td3_run) == before and not (tmp_path / "here").exists()
+
+
+@pytest.mark.e2e
+@pytest.mark.parametrize(
+    "script, override, field, words",
+    [
+        ("es_td3.py", "env.id=CartPole-v1", "env.id", "Discrete(2)"),  # discrete actions
+        ("td3.py", "env.id=Blackjack-v1", "env.id", "Discrete(2)"),  # a tuple of discrete observations too
+        ("es_td3.py", "buffer.capacity=1000000000000", "buffer.capacity", "of memory"),
+        ("es_td3.py", "es.population_size=100000000", "es.population_size", "of memory"),
+        ("cem_rl.py", "cem.population_size=100000000", "cem.population_size", "of memory"),
+    ],
+)
+def test_what_the_algorithm_or_this_machine_cannot_take_is_refused_before_any_work(tmp_path, script, override, field, words):
+    run_dir = tmp_path / "run"
+    result = run(run_dir, override, script=script)
+    line = one_line(result)
+    assert result.returncode == 2 and line.startswith(f"config error: {field}:") and words in line and "allowed" in line, line
+    assert not run_dir.exists()  # refused before the run directory is made
+
+
+def test_pendulum_takes_the_gym_backend():
+    from torchrl_esrl.collectors.backends import default_backend
+    from torchrl_esrl.envs import env_sizes
+
+    assert default_backend("Pendulum-v1") == "gym" and default_backend("HalfCheetah-v5") == "mujoco_batch"
+    assert env_sizes("Pendulum-v1") == (3, 1, 200)
+
+
+@pytest.mark.e2e
+def test_pendulum_runs_through_the_gym_backend(tmp_path):
+    result = subprocess.run(recipe_command("es_td3.py", "env.id=Pendulum-v1", "env.name=pendulum", f"hydra.run.dir={tmp_path}"), cwd=ROOT, capture_output=True, text=True, timeout=900, env=ENV)
+    assert result.returncode == 0, result.stderr[-3000:]
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    assert summary["env"] == "Pendulum-v1" and summary["td3_frames"] == 800 and summary["es_frames"] > 0
+
+
+def compose_tiny(config, *overrides):
+    from hydra import compose, initialize_config_dir
+
+    with initialize_config_dir(str(ROOT / "conf"), version_base="1.3"):
+        return compose(config, overrides=[TINY, *RESUME, *overrides])
+
+
+def test_memory_and_disk_checks_name_what_is_needed_what_is_there_and_the_field(tmp_path):
+    from torchrl_esrl.envs import env_sizes
+    from torchrl_esrl.errors import ConfigError
+    from torchrl_esrl.run.capacity import check_capacity, estimate, human
+
+    cfg = compose_tiny("config")
+    needed = estimate(cfg, "es_td3_buffers", env_sizes(cfg.env.id, cfg.env.max_episode_steps))
+    plenty = 10**15
+    check_capacity(cfg, needed, tmp_path / "run", memory=plenty, disk=(plenty, tmp_path))
+    with pytest.raises(ConfigError) as error:
+        check_capacity(cfg, needed, tmp_path / "run", memory=needed.memory_total - 1, disk=(plenty, tmp_path))
+    assert str(error.value).startswith("buffer.capacity:") or str(error.value).startswith("actor.hidden:")
+    assert human(needed.memory_total) in str(error.value) and human(needed.memory_total - 1) in str(error.value)
+    keep = int(cfg.checkpoint.keep_last)
+    check_capacity(cfg, needed, tmp_path / "run", memory=plenty, disk=((keep + 1) * needed.checkpoint, tmp_path))
+    with pytest.raises(ConfigError) as error:
+        check_capacity(cfg, needed, tmp_path / "run", memory=plenty, disk=((keep + 1) * needed.checkpoint - 1, tmp_path))
+    message = str(error.value)
+    assert message.startswith("hydra.run.dir:") and human((keep + 1) * needed.checkpoint) in message and f"is free at {tmp_path}" in message
+    assert "buffer.capacity" in message and "checkpoint.keep_last" in message and "\n" not in message
+
+
+@pytest.mark.e2e
+@pytest.mark.parametrize("script", list(RECIPES))
+def test_estimate_matches_the_filled_buffers_and_the_written_checkpoint(finished, script):
+    from torchrl.checkpoint import Checkpoint, StateDictCheckpointAdapter
+
+    from torchrl_esrl.data.multibuffer import MultiBuffer
+    from torchrl_esrl.envs import env_sizes
+    from torchrl_esrl.run.capacity import CHECKPOINT_MARGIN, buffer_count, bytes_per_transition, estimate
+    from torchrl_esrl.run.factories import make_multibuffer
+    from torchrl_esrl.torchrl_private import tensor_storage_data
+
+    run_dir = finished(script)
+    cfg = compose_tiny(CONFIGS[script], *RECIPES[script])
+    sizes = env_sizes(cfg.env.id, cfg.env.max_episode_steps)
+    needed = estimate(cfg, ALGORITHMS[script], sizes)
+    newest = run_dir / "checkpoints" / checkpoints(run_dir)[-1]
+    per_buffer = int(cfg.buffer.capacity) * bytes_per_transition(sizes.observation_dim, sizes.action_dim)
+    unallocated = buffer_count(ALGORITHMS[script])
+    if unallocated:  # the buffers as the run left them, loaded into real ones
+        buffer = make_multibuffer(cfg) if script == "es_td3.py" else MultiBuffer(ratio=(0, 0, 1), capacity=cfg.buffer.capacity, batch_size=cfg.buffer.batch_size, min_size=cfg.buffer.min_size)
+        Checkpoint(buffer=buffer).register_adapter(MultiBuffer, StateDictCheckpointAdapter()).load(newest, components=["buffer"])
+        storages = [data for data in (tensor_storage_data(b.storage) for b in buffer.buffers.values()) if data is not None]
+        assert storages  # at least one buffer written
+        measured = sum(t.numel() * t.element_size() for data in storages for t in data.values(True, True))
+        assert measured == len(storages) * per_buffer  # the formula, to the byte
+        unallocated -= len(storages)
+    disk = int(subprocess.run(["du", "-s", "--block-size=1", str(newest)], capture_output=True, text=True, check=True).stdout.split()[0])
+    full = disk + unallocated * per_buffer  # as if every buffer had been written
+    assert full <= needed.checkpoint and full >= 0.8 * (needed.checkpoint - CHECKPOINT_MARGIN), (disk, full, needed.checkpoint)
+
+
+def _file_size_limit(limit):
+    return lambda: resource.setrlimit(resource.RLIMIT_FSIZE, (limit, limit))
+
+
+@pytest.mark.e2e
+def test_failed_checkpoint_write_stops_keeps_the_previous_checkpoint_and_resumes(reference, tmp_path):
+    first = "checkpoint-000000000100"
+    assert start_and_kill(tmp_path, lambda: first in checkpoints(tmp_path)) == -signal.SIGKILL
+    kept = tree(tmp_path / "checkpoints" / first)
+    # A file-size limit below the size of the next checkpoint's files: its write fails with EFBIG.
+    limited = subprocess.run(command(tmp_path), cwd=ROOT, capture_output=True, text=True, timeout=900, env=ENV, preexec_fn=_file_size_limit(64 * 1024))
+    line = one_line(limited)
+    assert limited.returncode == 2 and line.startswith("checkpoint error: could not write a checkpoint in") and "File too large" in line and f"kept: {first}" in line, line
+    assert checkpoints(tmp_path) == [first] and tree(tmp_path / "checkpoints" / first) == kept
+    assert not list((tmp_path / "checkpoints").glob(".*"))  # TorchRL removed its staging folder
+    result = run(tmp_path)  # the limit lifted
+    assert result.returncode == 0, result.stderr[-3000:]
+    assert rows_without_wall_time(tmp_path) == rows_without_wall_time(reference)

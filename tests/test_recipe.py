@@ -44,6 +44,12 @@ def test_multirun_sweeps_the_ratio_one_directory_per_ratio(run_recipe, tmp_path)
     assert len(summaries) == 2
     ratios = sorted(json.loads(s.read_text())["ratio"] for s in summaries)
     assert ratios == [[0.34, 0.33, 0.33], [0.5, 0.2, 0.3]]
+    # The same sweep again: every job has finished, says so and leaves its files as they are.
+    files = {p: p.read_bytes() for p in sorted(tmp_path.rglob("*")) if p.is_file() and p.name != "multirun.yaml"}
+    again = run_recipe("es_td3.py", "-m", "iterations=1", "env=swimmer", "buffer.ratio=[0.5,0.2,0.3],[0.34,0.33,0.33]", f"hydra.sweep.dir={tmp_path}")
+    assert again.returncode == 0, again.stderr[-3000:]
+    assert again.stdout.count("finished: ") == 2, again.stdout
+    assert {p: p.read_bytes() for p in files} == files
 
 
 @pytest.mark.parametrize(

@@ -9,8 +9,10 @@ from __future__ import annotations
 import difflib
 import logging
 import sys
+from typing import NamedTuple
 
 import gymnasium as gym
+import numpy as np
 from torchrl_esrl.errors import ConfigError
 from torchrl.envs import Compose, DoubleToFloat, GymEnv, RewardSum, StepCounter, TransformedEnv
 
@@ -36,6 +38,39 @@ def resolve_env_id(name: str) -> str:
     close = difflib.get_close_matches(name, known + list(gym.registry), n=1)
     hint = f"; did you mean '{close[0]}'?" if close else ""
     raise ConfigError(f"env.id: unknown environment '{name}'{hint} (allowed: {', '.join(known)} or any gymnasium id)")
+
+
+TASKS_ALLOWED = "a bounded continuous Box action space and a flat Box observation space, e.g. HalfCheetah-v5 or Pendulum-v1"
+
+
+class EnvSizes(NamedTuple):
+    """What the networks and buffers of a task are sized by."""
+
+    observation_dim: int
+    action_dim: int
+    episode_steps: int | None  # the env's time limit (None: no limit registered)
+
+
+def env_sizes(env_id: str, max_episode_steps: int | None = None) -> EnvSizes:
+    """Sizes of the task ``env_id``, made once with gymnasium; :class:`ConfigError` naming
+    ``env.id`` if the algorithms cannot take it (the actor's tanh output needs a bounded
+    continuous Box action space, the MLPs a flat Box observation space)."""
+    env_id = resolve_env_id(env_id)
+    quiet_logs()
+    try:
+        env = gym.make(env_id)
+    except Exception as error:  # noqa: BLE001 - a registered id whose package or assets are missing
+        raise ConfigError(f"env.id: '{env_id}' cannot be made ({type(error).__name__}: {str(error).strip().splitlines()[0] if str(error).strip() else ''}) (allowed: {TASKS_ALLOWED})") from None
+    try:
+        observation, action, limit = env.observation_space, env.action_space, env.spec.max_episode_steps if env.spec else None
+    finally:
+        env.close()
+    if not isinstance(action, gym.spaces.Box) or len(action.shape) != 1 or not (np.isfinite(action.low).all() and np.isfinite(action.high).all()):
+        raise ConfigError(f"env.id: '{env_id}' has the action space {action} (allowed: {TASKS_ALLOWED})")
+    if not isinstance(observation, gym.spaces.Box) or len(observation.shape) != 1:
+        raise ConfigError(f"env.id: '{env_id}' has the observation space {observation} (allowed: {TASKS_ALLOWED})")
+    steps = int(max_episode_steps) if max_episode_steps is not None else limit
+    return EnvSizes(int(observation.shape[0]), int(action.shape[0]), None if steps is None else int(steps))
 
 
 # Messages that say nothing to a user of this package, silenced at their source and nowhere else:

@@ -1,8 +1,10 @@
-"""The two ways a run stops with one line instead of a traceback.
+"""The ways a run stops with one line instead of a traceback.
 
 - :class:`ConfigError`: a configuration value is invalid, found before any work starts;
 - ``FloatingPointError`` raised by :func:`check_finite` (and by the TD3 and ES updates): NaN or
-  inf in a loss, an episode return or the ES mean; nothing is checkpointed after it.
+  inf in a loss, an episode return or the ES mean; nothing is checkpointed after it;
+- :class:`CheckpointWriteError`: a checkpoint could not be written (disk full, file-size limit);
+  the previous checkpoint is kept whole.
 """
 from __future__ import annotations
 
@@ -13,6 +15,10 @@ import torch
 
 class ConfigError(ValueError):
     """A configuration value is invalid; the message is one line naming the field and what is allowed."""
+
+
+class CheckpointWriteError(RuntimeError):
+    """A checkpoint could not be written; the message is one line naming the directory and the cause."""
 
 
 def check_finite(name: str, value):

@@ -754,12 +754,13 @@ def _draw_es_vs_td3(ax, run: dict) -> None:
     ax.grid(alpha=0.3)
 
 
-def plot_run(run_dir) -> Path:
-    """``learning_curve.png`` in one run directory (every recipe, at the end of its run): the
-    deterministic evaluations per iteration as in :func:`plot_es_vs_td3`, overwrites marked."""
+def plot_run(run_dir, summary: dict | None = None) -> Path:
+    """``learning_curve.png`` in one run directory (every recipe, at the end of its run, before
+    ``summary`` is written; by default read from ``summary.json``): the deterministic evaluations
+    per iteration as in :func:`plot_es_vs_td3`, overwrites marked."""
     plt = _pyplot()
     run_dir = Path(run_dir)
-    summary = json.loads((run_dir / "summary.json").read_text())
+    summary = summary if summary is not None else json.loads((run_dir / "summary.json").read_text())
     run = {"summary": summary, "metrics": read_metrics(run_dir / "metrics.csv"), "dir": run_dir}
     fig, ax = plt.subplots(figsize=(6, 4))
     _draw_es_vs_td3(ax, run)

@@ -26,21 +26,36 @@ directory, then renamed) under :class:`~torchrl.checkpoint.CheckpointRotation`
 kill during a save leaves the previous checkpoint whole. Checkpoints are taken at every
 iteration boundary and every ``checkpoint.every_frames`` TD3 frames (mid-phase, possibly
 mid-episode); :meth:`RunCheckpoint.save` refuses to write non-finite parameters, so nothing
-is saved after a numerical fault.
+is saved after a numerical fault. A save that fails (disk full) raises
+:class:`~torchrl_esrl.errors.CheckpointWriteError`; TorchRL removes its staging folder and the
+previous checkpoint stays whole.
+
+A checkpoint that cannot be read (:func:`unreadable`: its manifest, a file it lists, a JSON file
+that does not parse, a tensor file of the wrong size) is skipped on restore with one line on
+stderr, and the previous one is restored instead. The manifest's metadata names the algorithm,
+so that a run directory of another recipe is told apart before anything is built.
 """
 from __future__ import annotations
 
+import json
+import math
+import os
+import re
 import shutil
+import sys
 from pathlib import Path
 
 import torch
-from torchrl.checkpoint import Checkpoint, CheckpointRotation, GlobalRNGState, StateDictCheckpointAdapter
+from torchrl.checkpoint import Checkpoint, CheckpointError, CheckpointRotation, GlobalRNGState, StateDictCheckpointAdapter
+
+from torchrl_esrl.errors import CheckpointWriteError, ConfigError
 
 from torchrl_esrl.data.multibuffer import MultiBuffer
 from torchrl_esrl.run.logger_position import LoggerPosition
 from torchrl_esrl.run.progress import RunProgress
 
 CHECKPOINT_DIR = "checkpoints"
+CHECKPOINT_NAME = re.compile(r"checkpoint-(\d+)(\.torchrl)?")  # CheckpointRotation's entries
 
 
 class _Value:
@@ -63,15 +78,17 @@ class RunCheckpoint:
         run_dir: the run directory (metrics.csv, logs/ and checkpoints/ live there).
         config: the resolved config as a plain dict (saved; compared on resume, see resume.py).
         every_frames: also save every this many TD3 frames (0: iteration boundaries only).
+        algorithm: the algorithm's name (``summary.json``'s), saved in the metadata.
         components: name -> object with ``state_dict``/``load_state_dict``.
     """
 
-    def __init__(self, run_dir: str | Path, config: dict, every_frames: int, keep_last: int, **components):
+    def __init__(self, run_dir: str | Path, config: dict, every_frames: int, keep_last: int, algorithm: str | None = None, **components):
         self.run_dir = Path(run_dir)
         self.every_frames = int(every_frames)
         self.rotation = CheckpointRotation(self.run_dir / CHECKPOINT_DIR, keep_last=keep_last)
         self.progress: RunProgress = components["progress"]
         self.config = config
+        self.algorithm = algorithm
         self.components = components
         self.checkpoint = Checkpoint(
             rng=GlobalRNGState(),
@@ -85,14 +102,26 @@ class RunCheckpoint:
         return self.rotation.latest() if (self.run_dir / CHECKPOINT_DIR).exists() else None
 
     def save(self) -> Path:
-        """Write a checkpoint of the current state (refuses non-finite parameters)."""
+        """Write a checkpoint of the current state (refuses non-finite parameters; a failed write
+        raises :class:`CheckpointWriteError` and leaves the previous checkpoint whole)."""
         for name, component in self.components.items():
             for tensor in _parameters_of(component):
                 if not torch.isfinite(tensor).all():
                     raise FloatingPointError(f"refusing to checkpoint non-finite parameters of '{name}'")
         self._last_frames = self.progress.frames_now
         step = self.progress.frames_now + self.progress.iteration  # grows with every save
-        return self.rotation.save(self.checkpoint, step=step, metadata={"iteration": self.progress.iteration, "td3_frames": self.progress.frames_now, "config": self.config})
+        metadata = {"iteration": self.progress.iteration, "td3_frames": self.progress.frames_now, "config": self.config, "algorithm": self.algorithm}
+        try:
+            return self.rotation.save(self.checkpoint, step=step, metadata=metadata)
+        except (OSError, RuntimeError) as error:
+            cause = _write_failure(error)
+            if cause is None:
+                raise
+            kept = newest_readable(self.run_dir)[0]
+            raise CheckpointWriteError(
+                f"could not write a checkpoint in {self.run_dir / CHECKPOINT_DIR} ({cause}); run stopped, "
+                f"{f'last good checkpoint kept: {kept.name}' if kept else 'no earlier checkpoint'}; rerun the same command to resume once there is room"
+            ) from None
 
     def maybe_save_mid_phase(self, *_):
         """``td3_phase`` ``on_batch`` hook: save once every ``every_frames`` TD3 frames."""
@@ -100,14 +129,32 @@ class RunCheckpoint:
             self.save()
 
     def restore(self, path: str | Path | None = None) -> Path | None:
-        """Load ``path`` (the latest checkpoint by default) into the live components; None if there is none."""
+        """Load ``path`` into the live components; by default the newest checkpoint that can be
+        read, saying in one line on stderr for each newer one why it was skipped. None if the run
+        directory has no checkpoint; :class:`ConfigError` if it has some and none can be read."""
         self._remove_dead_stages()
-        path = self.latest() if path is None else Path(path)
-        if path is None:
-            return None
-        self.checkpoint.load(path)
-        self._last_frames = self.progress.frames_now
-        return path
+        if path is not None:
+            self.checkpoint.load(path)
+            self._last_frames = self.progress.frames_now
+            return Path(path)
+        skipped = []
+        for candidate in checkpoint_paths(self.run_dir):
+            reason = unreadable(candidate)
+            if reason is None:
+                try:
+                    self.checkpoint.load(candidate)  # every component again from the next one if this fails
+                except CheckpointError as error:
+                    reason = _first_line(error)
+            if reason is not None:
+                skipped.append((candidate, reason))
+                continue
+            for damaged, why in skipped:
+                print(f"checkpoint {damaged} cannot be read ({why}); resuming from {candidate.name}", file=sys.stderr, flush=True)
+            self._last_frames = self.progress.frames_now
+            return candidate
+        if skipped:
+            raise ConfigError(no_readable_checkpoint(self.run_dir, skipped))
+        return None
 
     def _remove_dead_stages(self) -> None:
         """A save killed midway leaves its hidden staging folder (TorchRL removes one only on an
@@ -116,13 +163,104 @@ class RunCheckpoint:
             shutil.rmtree(stage, ignore_errors=True)
 
 
-def saved_config(run_dir: str | Path) -> dict | None:
-    """The config stored with the latest checkpoint of ``run_dir`` (None if it has none)."""
+def checkpoint_paths(run_dir: str | Path) -> list[Path]:
+    """Every entry of ``<run_dir>/checkpoints`` named as a checkpoint, readable or not, newest first."""
     directory = Path(run_dir) / CHECKPOINT_DIR
-    if not directory.exists():
-        return None
-    latest = CheckpointRotation(directory, keep_last=1).latest()
-    return None if latest is None else Checkpoint.manifest(latest)["metadata"]["config"]
+    if not directory.is_dir():
+        return []
+    named = [(int(match.group(1)), path) for path in directory.iterdir() if (match := CHECKPOINT_NAME.fullmatch(path.name))]
+    return [path for _, path in sorted(named, reverse=True)]
+
+
+def unreadable(path: str | Path) -> str | None:
+    """Why the checkpoint at ``path`` cannot be restored, or None: its manifest (TorchRL's
+    check), every file it lists, every JSON file, and every tensor file's size against the
+    shape and dtype its TensorDict metadata gives. Reads no tensor data."""
+    path = Path(path)
+    try:
+        manifest = Checkpoint.manifest(path)
+    except (CheckpointError, OSError, ValueError) as error:
+        return f"manifest: {_first_line(error)}"
+    if not path.is_dir():
+        return None  # an archive: TorchRL checks its members on load
+    for name, record in manifest["components"].items():
+        root = path / record["path"]
+        for relative in record.get("files", []):
+            file = root / relative
+            if not file.is_file():
+                return f"{name}: {relative} is missing"
+            if file.suffix == ".json":
+                try:
+                    meta = json.loads(file.read_text(encoding="utf-8"))
+                except (OSError, ValueError) as error:
+                    return f"{name}: {relative} does not parse ({_first_line(error)})"
+                if file.name == "meta.json" and (wrong := _wrong_tensor_size(file.parent, meta)):
+                    return f"{name}: {wrong}"
+    return None
+
+
+def _wrong_tensor_size(folder: Path, meta: dict) -> str | None:
+    """A tensor file of a TensorDict saved with ``tensordict.save`` whose size does not match its metadata."""
+    for key, entry in meta.items():
+        if not (isinstance(entry, dict) and "shape" in entry and "dtype" in entry) or entry.get("is_nested"):
+            continue
+        dtype = getattr(torch, str(entry["dtype"]).removeprefix("torch."), None)
+        if not isinstance(dtype, torch.dtype):
+            continue
+        file = folder / f"{key}.memmap"
+        expected = math.prod(entry["shape"]) * dtype.itemsize
+        size = file.stat().st_size if file.is_file() else None
+        if size is not None and size != expected:
+            return f"{folder.name}/{file.name} holds {size} bytes, its metadata says {expected}"
+    return None
+
+
+def newest_readable(run_dir: str | Path) -> tuple[Path | None, list[tuple[Path, str]]]:
+    """The newest checkpoint of ``run_dir`` that :func:`unreadable` passes, and the newer ones it does not (with why)."""
+    skipped = []
+    for path in checkpoint_paths(run_dir):
+        reason = unreadable(path)
+        if reason is None:
+            return path, skipped
+        skipped.append((path, reason))
+    return None, skipped
+
+
+def no_readable_checkpoint(run_dir: str | Path, skipped: list[tuple[Path, str]]) -> str:
+    """The one line of a run directory whose checkpoints all fail to read."""
+    newest, why = skipped[0]
+    return (
+        f"no checkpoint in {Path(run_dir) / CHECKPOINT_DIR} can be read ({len(skipped)} tried; newest {newest.name}: {why}); "
+        "nothing was changed (allowed: restore the checkpoints, or fresh=true or another hydra.run.dir for a new run)"
+    )
+
+
+def saved_metadata(run_dir: str | Path) -> dict | None:
+    """The metadata (config, algorithm, position) of the newest readable checkpoint of ``run_dir``."""
+    path = newest_readable(run_dir)[0]
+    return None if path is None else Checkpoint.manifest(path)["metadata"]
+
+
+def saved_config(run_dir: str | Path) -> dict | None:
+    """The config stored with the newest readable checkpoint of ``run_dir`` (None if it has none)."""
+    metadata = saved_metadata(run_dir)
+    return None if metadata is None else metadata["config"]
+
+
+def _write_failure(error: BaseException) -> str | None:
+    """The cause of a failed write (an ``OSError``, or torch's ``RuntimeError`` for a memory-mapped
+    file it could not size, which ends in the errno: ``... File too large (27)``); None otherwise."""
+    if isinstance(error, OSError):
+        return error.strerror or str(error)
+    match = re.search(r"\((\d+)\)\s*$", str(error))
+    if match and "file" in str(error):
+        return os.strerror(int(match.group(1)))
+    return None
+
+
+def _first_line(error: BaseException) -> str:
+    text = str(error).strip()
+    return (text.splitlines()[0] if text else type(error).__name__)[:300]
 
 
 def _parameters_of(component):

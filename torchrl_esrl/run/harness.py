@@ -118,7 +118,8 @@ class RunHarness:
             self.bar.set_postfix_str(f"{phase}; {self.returns_text}" if self.returns_text else phase)
 
     def finish(self, returned: torch.Tensor, extra: Mapping | None = None, alias: str | None = None) -> dict:
-        """Final evaluation of the returned policy; writes and returns ``summary.json``.
+        """Final evaluation of the returned policy; writes and returns ``summary.json``, the last
+        file a run writes (its presence marks the run finished: a rerun leaves it alone).
 
         ``alias`` also stores ``final_return`` under a recipe-specific name."""
         cfg = self.cfg
@@ -142,6 +143,6 @@ class RunHarness:
         if self.threads:
             summary["threads"] = self.threads
         summary["wall_time_s"] = self.wall_time_s
-        write_json(self.run_dir / "summary.json", summary)
-        plot_run(self.run_dir)  # learning_curve.png
+        plot_run(self.run_dir, summary)  # learning_curve.png
+        write_json(self.run_dir / "summary.json", summary)  # last, atomically: a run with a summary has finished
         return summary

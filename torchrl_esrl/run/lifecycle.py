@@ -1,14 +1,17 @@
 """One run lifecycle for every recipe (ES-TD3Buffers, TD3, OpenAI-ES, CEM-RL).
 
 ``main = recipe_main(train, config_name=..., algorithm=...)`` gives a recipe's ``main``: Hydra
-composes ``conf/<config_name>.yaml``; the config is checked once, before Hydra writes into the
-run directory (:class:`ValidateBeforeRun`; in a multirun, each job checks its own); then
-``train(cfg, run)`` runs with a :class:`Run` that seeds, makes kernels deterministic, logs,
-evaluates, checkpoints at every iteration boundary and resumes from the run directory's last
-checkpoint. A config error or a numerical fault ends the run with one line on stderr, exit 2.
+composes ``conf/<config_name>.yaml``; the config, the task, the memory and disk the run needs and
+what the run directory holds are checked once, before Hydra writes into the run directory
+(:class:`ValidateBeforeRun`; in a multirun, each job checks its own); then ``train(cfg, run)``
+runs with a :class:`Run` that seeds, makes kernels deterministic, logs, evaluates, checkpoints at
+every iteration boundary and resumes from the run directory's last readable checkpoint. A
+finished run is not run again: one line says where its results are, exit 0. A config error, a
+numerical fault or a checkpoint that cannot be written ends the run with one line on stderr, exit 2.
 """
 from __future__ import annotations
 
+import errno
 import functools
 import os
 import sys
@@ -19,16 +22,17 @@ from typing import Any
 import hydra
 from hydra.core.hydra_config import HydraConfig
 from hydra.experimental.callback import Callback
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig, OmegaConf, read_write
 from tqdm.auto import tqdm
 
-from torchrl_esrl.errors import ConfigError
+from torchrl_esrl.errors import CheckpointWriteError, ConfigError
 from torchrl_esrl.run.checkpoint import CHECKPOINT_DIR, RunCheckpoint
 from torchrl_esrl.run.console import final_lines, iteration_line, print_config
 from torchrl_esrl.run.determinism import make_deterministic
 from torchrl_esrl.run.harness import RunHarness
+from torchrl_esrl.run.metrics import read_metrics
 from torchrl_esrl.run.progress import RunProgress
-from torchrl_esrl.run.resume import prepare_run
+from torchrl_esrl.run.resume import Finished, fresh_run_dir, prepare_run
 
 CONF_DIR = Path(__file__).resolve().parents[2] / "conf"
 
@@ -54,8 +58,10 @@ class Run(RunHarness):
         self.threads = threads_used(components)
         cfg = self.cfg
         config = OmegaConf.to_container(cfg, resolve=True)
-        self.checkpoint = RunCheckpoint(self.run_dir, config, cfg.checkpoint.every_frames, cfg.checkpoint.keep_last, progress=self.progress, evaluator=self.evaluator, **components)
-        self.checkpoint.restore()
+        self.checkpoint = RunCheckpoint(self.run_dir, config, cfg.checkpoint.every_frames, cfg.checkpoint.keep_last, algorithm=self.algorithm, progress=self.progress, evaluator=self.evaluator, **components)
+        if self.checkpoint.restore() is not None and self.log_.path.exists():
+            rows = read_metrics(self.log_.path)  # as of the checkpoint: the summary's frame counts if no iteration is left
+            self.last_row = rows[-1] if rows else {}
 
     def iterations(self, desc: str) -> Iterator[int]:
         """The outer loop from where the run stands; after each iteration's body, a checkpoint and,
@@ -103,40 +109,70 @@ def recipe_main(train: Callable[[DictConfig, Run], dict], config_name: str, algo
     @hydra.main(version_base="1.3", config_path=str(CONF_DIR), config_name=config_name)
     @functools.wraps(train)  # Hydra names the job, and its log file, after the recipe's file
     def main(cfg: DictConfig) -> None:
-        cfg, run_dir = _checked(cfg)
+        checked = _checked(cfg, algorithm)
+        if checked is None:  # a finished multirun job: said so, nothing to do
+            return
+        cfg, run_dir = checked
         print_config(cfg)  # only with logger.print_config=true; Hydra saves it in <run dir>/.hydra/
         run = Run(cfg, run_dir, algorithm(cfg) if callable(algorithm) else algorithm)
         try:
             summary = train(cfg, run)
         except FloatingPointError as fault:
             _exit(f"numerical fault: {fault}; run stopped, last good checkpoint kept in {run_dir / CHECKPOINT_DIR}")
+        except CheckpointWriteError as error:
+            _exit(f"checkpoint error: {error}")
+        except OSError as error:
+            if error.errno not in (errno.ENOSPC, errno.EFBIG, errno.EDQUOT):
+                raise
+            _exit(f"disk error: {error.strerror} writing {error.filename or run_dir}; run stopped, last good checkpoint kept in {run_dir / CHECKPOINT_DIR}; rerun the same command to resume once there is room")
         print(final_lines(summary, run_dir))  # returns of the returned, TD3 and initial policies; where the files are
 
+    _recipe["algorithm"] = algorithm  # for ValidateBeforeRun
     return functools.partial(run_cli, main)
 
 
 # ------------------------------------------------------------------ config checks, once a launch
 _prepared: list[tuple[DictConfig | None, Path]] = []  # what ValidateBeforeRun checked, for the task function
+_recipe: dict = {}  # the algorithm of the recipe whose main runs (recipe_main)
 
 
 class ValidateBeforeRun(Callback):
-    """Hydra callback: every check before Hydra creates or writes the run directory."""
+    """Hydra callback: every check before Hydra creates or writes the run directory. A finished
+    run exits 0 here, with one line, before Hydra writes anything; ``fresh=true`` moves the run
+    (and Hydra's files) to a new directory next to one that holds a run."""
 
     def on_run_start(self, config, **kwargs: Any) -> None:
+        run_dir = Path(str(config.hydra.run.dir)).expanduser()
+        if config.get("fresh") and not config.resume:
+            run_dir = fresh_run_dir(run_dir)
+            if run_dir != Path(str(config.hydra.run.dir)).expanduser():
+                print(f"fresh=true: {config.hydra.run.dir} holds a run; this one starts in {run_dir}", file=sys.stderr, flush=True)
+                with read_write(config.hydra):
+                    config.hydra.run.dir = str(run_dir)  # run_job reads it next
         try:
-            cfg, run_dir = prepare_run(config, config.hydra.run.dir)
+            cfg, run_dir = prepare_run(config, run_dir, _recipe.get("algorithm"))
+        except Finished as finished:
+            print(finished, flush=True)
+            raise SystemExit(0) from None
         except ConfigError as error:
             _exit(f"config error: {error}")  # Hydra turns a callback's exception into a warning: exit here
         _prepared.append((cfg if config.resume else None, run_dir))
 
 
-def _checked(cfg: DictConfig) -> tuple[DictConfig, Path]:
-    """The config to run (the saved one on ``resume``) and the run directory."""
+def _checked(cfg: DictConfig, algorithm) -> tuple[DictConfig, Path] | None:
+    """The config to run (the saved one on ``resume``) and the run directory; None for a
+    finished multirun job (its line printed)."""
     if _prepared:  # a single run, checked by ValidateBeforeRun
         saved, run_dir = _prepared.pop()
         return (cfg if saved is None else saved), run_dir
-    try:  # a multirun job
-        return prepare_run(cfg, HydraConfig.get().runtime.output_dir)
+    run_dir = HydraConfig.get().runtime.output_dir  # a multirun job: Hydra has written its files there
+    if cfg.get("fresh") and not cfg.resume:
+        run_dir = fresh_run_dir(run_dir)
+    try:
+        return prepare_run(cfg, run_dir, algorithm)
+    except Finished as finished:
+        print(finished, flush=True)
+        return None
     except ConfigError as error:
         _exit(f"config error: {error}")
 

@@ -1,16 +1,35 @@
-"""Checks before any work: config values, the output directory and, in a run directory that holds
-a checkpoint, that the config is the run's own (or ``resume=<dir>``: continue that run)."""
+"""Checks before any work: config values, the task, what the run will hold, the output directory
+and what it already holds.
+
+A run directory holding a checkpoint continues that run, if it is the run asked for: the same
+algorithm on the same env (else one line naming both), then the same config (else one line
+naming the first field that differs). ``resume=<dir>`` continues ``<dir>`` with its own config.
+A finished run (``summary.json`` written, the last file a run writes) is never rewritten:
+:class:`Finished` carries the line that says so. ``fresh=true`` starts a new run next to a
+directory that holds one (:func:`fresh_run_dir`).
+"""
 from __future__ import annotations
 
+import json
+from collections.abc import Callable
 from pathlib import Path
 
 from omegaconf import DictConfig, OmegaConf
+from torchrl.checkpoint import Checkpoint
 
+from torchrl_esrl.envs import env_sizes, resolve_env_id
 from torchrl_esrl.errors import ConfigError
-from torchrl_esrl.run.checkpoint import CHECKPOINT_DIR, saved_config
+from torchrl_esrl.run.capacity import check_capacity, default_algorithm, estimate
+from torchrl_esrl.run.checkpoint import CHECKPOINT_DIR, newest_readable, no_readable_checkpoint
 from torchrl_esrl.run.config import check_output_dir, validate_config
 
-IGNORED_ON_RESUME = ("resume", "logger", "checkpoint", "hydra")  # may change between a run and its resume
+IGNORED_ON_RESUME = ("resume", "fresh", "logger", "checkpoint", "hydra")  # may change between a run and its resume
+SUMMARY = "summary.json"
+NEW_RUN = "fresh=true or another hydra.run.dir for a new run"
+
+
+class Finished(Exception):
+    """The run directory holds a finished run; the message is the one line that says so."""
 
 
 def _flatten(node, prefix: str = "") -> dict:
@@ -22,26 +41,89 @@ def _flatten(node, prefix: str = "") -> dict:
     return {prefix[:-1]: node}
 
 
-def prepare_run(cfg: DictConfig, hydra_run_dir) -> tuple[DictConfig, Path]:
-    """Every check before any work. Returns ``(config, run_dir)``; raises :class:`ConfigError`
-    with a one-line message.
+def finished_summary(run_dir: Path) -> dict | None:
+    """``summary.json`` of a finished run in ``run_dir`` (None if the run has not finished)."""
+    try:
+        return json.loads((Path(run_dir) / SUMMARY).read_text())
+    except (OSError, ValueError):
+        return None
 
-    ``resume=<dir>`` continues ``<dir>`` with the config saved in its checkpoint (``logger``
-    and ``checkpoint`` settings from the command line).
+
+def holds_run(run_dir: Path) -> bool:
+    run_dir = Path(run_dir)
+    return any((run_dir / name).exists() for name in (SUMMARY, CHECKPOINT_DIR, "metrics.csv"))
+
+
+def fresh_run_dir(run_dir) -> Path:
+    """``run_dir`` if it holds no run, else the first ``<run_dir>-2``, ``-3``... that does not exist."""
+    run_dir = Path(str(run_dir)).expanduser()
+    number = 2
+    candidate = run_dir
+    while holds_run(candidate) or (candidate != run_dir and candidate.exists()):
+        candidate, number = run_dir.with_name(f"{run_dir.name}-{number}"), number + 1
+    return candidate
+
+
+def _article(name: str) -> str:
+    return "an" if name[:1].lower() in "aeiou" else "a"
+
+
+def _check_identity(field: str, run_dir: Path, algorithm: str, env_id: str, metadata: dict | None, summary: dict | None) -> None:
+    """The directory's run is ``algorithm`` on ``env_id``, where it says (summary or checkpoint)."""
+    held_algorithm = (summary or {}).get("algorithm") or (metadata or {}).get("algorithm")
+    held_env = (summary or {}).get("env") or ((metadata or {}).get("config") or {}).get("env", {}).get("id")
+    held_env = resolve_env_id(held_env) if held_env else None
+    if (held_algorithm and held_algorithm != algorithm) or (held_env and held_env != env_id):
+        held = f"{_article(held_algorithm)} {held_algorithm} run" if held_algorithm else "a run"
+        raise ConfigError(
+            f"{field}: {run_dir} holds {held} on {held_env or 'an unknown env'}; asked: {algorithm} on {env_id} "
+            f"(allowed: the recipe and config of that run, to continue it; {NEW_RUN}); nothing was changed"
+        )
+
+
+def finished_line(run_dir: Path, summary: dict) -> str:
+    final = summary.get("final_return")
+    result = f" (final return {final:.1f})" if isinstance(final, (int, float)) else ""
+    return (
+        f"finished: {run_dir} holds a finished {summary.get('algorithm', '')} run on {summary.get('env', '?')}{result}; "
+        f"results in {Path(run_dir) / SUMMARY} and metrics.csv; nothing was changed ({NEW_RUN})"
+    )
+
+
+def prepare_run(cfg: DictConfig, hydra_run_dir, algorithm: str | Callable[[DictConfig], str] | None = None) -> tuple[DictConfig, Path]:
+    """Every check before any work. Returns ``(config, run_dir)``; raises :class:`ConfigError`
+    with a one-line message, or :class:`Finished` if the run directory's run has finished.
+
+    ``algorithm`` is the recipe's name for what it runs (a function of the config, as given to
+    ``recipe_main``; by default the ES-TD3 config's, or CEM-RL's). ``resume=<dir>`` continues
+    ``<dir>`` with the config saved in its checkpoint (``logger`` and ``checkpoint`` settings
+    from the command line).
     """
     resume = cfg.resume
+    if resume and cfg.get("fresh"):
+        raise ConfigError(f"fresh: true asks for a new run, resume={resume} to continue one (allowed: one of them)")
+    field = "resume" if resume else "hydra.run.dir"
     run_dir = Path(str(resume if resume else hydra_run_dir)).expanduser()
-    saved = saved_config(run_dir) if run_dir.is_dir() else None
+    readable, damaged = newest_readable(run_dir) if run_dir.is_dir() else (None, [])
+    metadata = Checkpoint.manifest(readable)["metadata"] if readable is not None else None
+    summary = finished_summary(run_dir)
+    saved = metadata["config"] if metadata is not None else None
     current = OmegaConf.to_container(OmegaConf.masked_copy(cfg, [k for k in cfg if k != "hydra"]), resolve=True)
+    if resume and saved is None:
+        if summary is not None:
+            raise Finished(finished_line(run_dir, summary))
+        if damaged:
+            raise ConfigError(f"resume: {no_readable_checkpoint(run_dir, damaged)}")
+        raise ConfigError(f"resume: '{resume}' holds no checkpoint (allowed: a run directory with a {CHECKPOINT_DIR}/ folder)")
     if resume:
-        if saved is None:
-            raise ConfigError(f"resume: '{resume}' holds no checkpoint (allowed: a run directory with a {CHECKPOINT_DIR}/ folder)")
         for key in IGNORED_ON_RESUME:
             if key in current:
                 saved[key] = current[key]
         cfg = OmegaConf.create(saved)
     validate_config(cfg)
-    check_output_dir(run_dir)
+    name = (algorithm(cfg) if callable(algorithm) else algorithm) or default_algorithm(cfg)
+    sizes = env_sizes(cfg.env.id, cfg.env.max_episode_steps)  # refuses tasks the algorithms cannot take
+    _check_identity(field, run_dir, name, resolve_env_id(cfg.env.id), metadata, summary)
     if saved is not None and not resume:
         before, now = _flatten({k: v for k, v in saved.items() if k not in IGNORED_ON_RESUME}), _flatten({k: v for k, v in current.items() if k not in IGNORED_ON_RESUME})
         for key in sorted(set(before) | set(now)):
@@ -50,4 +132,12 @@ def prepare_run(cfg: DictConfig, hydra_run_dir) -> tuple[DictConfig, Path]:
                     f"{key}: {now.get(key, '<absent>')!r} differs from {before.get(key, '<absent>')!r} in the checkpoint of {run_dir} "
                     "(allowed: the run's own config to resume it, or another hydra.run.dir)"
                 )
+    if summary is not None:
+        raise Finished(finished_line(run_dir, summary))
+    if readable is None and damaged:
+        raise ConfigError(f"{field}: {no_readable_checkpoint(run_dir, damaged)}")
+    if readable is None and (run_dir / "metrics.csv").exists():
+        raise ConfigError(f"{field}: {run_dir} holds metrics.csv but no checkpoint to continue it from; nothing was changed (allowed: {NEW_RUN})")
+    check_capacity(cfg, estimate(cfg, name, sizes), run_dir)
+    check_output_dir(run_dir)
     return cfg, run_dir

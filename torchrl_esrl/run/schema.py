@@ -138,6 +138,7 @@ class ESTD3Config:
     iterations: int = MISSING
     experiment_name: str = MISSING
     resume: Optional[str] = MISSING
+    fresh: bool = MISSING
     env: EnvConfig = field(default_factory=EnvConfig)
     td3: TD3Config = field(default_factory=TD3Config)
     actor: ActorConfig = field(default_factory=ActorConfig)
