@@ -11,8 +11,10 @@ from torchrl_esrl.es.openes import OpenES
 from torchrl_esrl.collectors.es_collector import ESCollector
 from torchrl_esrl.modules.networks import flat_parameters, make_actor, make_critic
 from torchrl_esrl.algorithm.td3_phase import td3_phase
-from torchrl_esrl.collectors.td3_collector import finished_episode_returns, make_td3_collector
-from torchrl_esrl.objectives.td3 import TD3
+from torchrl_esrl.collectors.td3_collector import GymTD3Collector, finished_episode_returns, make_td3_collector
+from torchrl_esrl.objectives.td3 import TD3, ForeachSoftUpdate, FusedTD3Loss
+
+FAST = {"loss_class": FusedTD3Loss, "target_update_class": ForeachSoftUpdate, "optimizer_impl": "fused"}  # make_td3's fast pieces
 from torchrl_esrl.data.threshold import Threshold
 
 
@@ -129,10 +131,10 @@ def test_fast_td3_matches_stock_torchrl_td3():
     spec = Bounded(-torch.ones(6), torch.ones(6), shape=(6,))
     actor, critic = make_actor(17, spec), make_critic(17, 6)
     torch.manual_seed(1)  # TD3Loss draws the second critic's initial weights
-    stock = TD3(copy.deepcopy(actor), copy.deepcopy(critic), spec, fast=False)
+    stock = TD3(copy.deepcopy(actor), copy.deepcopy(critic), spec)
     torch.manual_seed(1)
-    fast = TD3(actor, critic, spec)
-    assert fast.fast and type(fast.loss).__name__ == "FusedTD3Loss"
+    fast = TD3(actor, critic, spec, **FAST)
+    assert type(stock.loss).__name__ == "TD3Loss" and type(fast.loss).__name__ == "FusedTD3Loss"
     buffer = MultiBuffer(capacity=512, batch_size=256)
     for name in buffer.names:
         buffer.extend(_random_transitions(512, 17, 6), name)
@@ -255,7 +257,7 @@ def _collector_pair_batches(fast, frames_per_batch, batches, seed=3, env_id="Hal
         noise = td3.exploration_policy[1]
         noise.mean.fill_(noise_moments[0])
         noise.std.fill_(noise_moments[1])
-    collector = make_td3_collector(env, td3, frames_per_batch=frames_per_batch, fast=fast)
+    collector = GymTD3Collector(env, td3, frames_per_batch) if fast else make_td3_collector(env, td3, frames_per_batch)
     assert not fast or collector.numpy_steps is not None, "the numpy steps after the actor's tanh must be the path under test"
     torch.manual_seed(7)  # the exploration noise stream
     iterator = iter(collector)
@@ -294,7 +296,7 @@ def test_td3_collector_resumes_mid_episode(fast):
         env = make_env("HalfCheetah-v5", seed=seed, max_episode_steps=60)
         torch.manual_seed(0)
         td3 = TD3(make_actor(17, env.action_spec), make_critic(17, 6), env.action_spec)
-        return make_td3_collector(env, td3, frames_per_batch=10, fast=fast)
+        return GymTD3Collector(env, td3, 10) if fast else make_td3_collector(env, td3, frames_per_batch=10)
 
     first = collector(3)
     batches = iter(first)
@@ -343,7 +345,7 @@ def test_fused_loss_follows_a_loaded_state_dict():
 
     spec = Bounded(-torch.ones(6), torch.ones(6), shape=(6,))
     batch = _random_transitions(64, 17, 6)
-    source, loaded = (TD3(make_actor(17, spec, (32, 32)), make_critic(17, 6, (32, 32)), spec) for _ in range(2))
+    source, loaded = (TD3(make_actor(17, spec, (32, 32)), make_critic(17, 6, (32, 32)), spec, **FAST) for _ in range(2))
     for _ in range(3):
         source.update(batch)
         loaded.update(batch)

@@ -23,8 +23,9 @@ def make_td3_with_warmup(frames: int, seed: int = 7):
 
 
 def collect_actions(env, td3, batches: int, restore_from=None, fast: bool = True) -> torch.Tensor:
-    config = OmegaConf.create({"device": "cpu", "td3": {"frames_per_batch": 10, "fast": fast}})
+    config = OmegaConf.create({"device": "cpu", "implementation": "fast" if fast else "reference", "td3": {"frames_per_batch": 10}})
     collector, td3_batches = make_td3_batches(config, env, td3)  # the recipes' factory
+    assert type(collector).__name__ == ("GymTD3Collector" if fast else "Collector")
     if restore_from is not None:  # as the recipes do: components built, then the checkpoint loaded
         Checkpoint(exploration=td3.exploration_policy).load(restore_from)
     actions = [next(td3_batches)["action"].reshape(-1, 2) for _ in range(batches)]

@@ -146,6 +146,11 @@ class FusedTD3Loss(TD3LossQ1Actor):
         """:meth:`_fused_layout`, or False for a batch with prioritised weights (TorchRL's code handles those)."""
         return self._fused_layout() if loss_priority_weight(self, tensordict) is None else False
 
+    def _inherits(self, name: str) -> bool:
+        """Whether ``name`` (``value_loss``, ``actor_loss``) is this class's own: a subclass that
+        overrides it gets its own loss, through autograd, not the hand-written gradient of this one."""
+        return getattr(type(self), name) is getattr(FusedTD3Loss, name)
+
     def value_loss(self, tensordict) -> tuple[torch.Tensor, dict]:
         """TD3Loss's critic loss and its metadata tensors (TD3.update uses :meth:`value_loss_backward`)."""
         layout = self._fused_layout_for(tensordict)
@@ -174,7 +179,7 @@ class FusedTD3Loss(TD3LossQ1Actor):
         ``g = dL/dQ = 2 (Q - y) / B``. tests/test_td3.py compares loss and gradients with
         stock ``TD3Loss.value_loss`` + ``backward``.
         """
-        layout = self._fused_layout_for(tensordict)
+        layout = self._fused_layout_for(tensordict) if self._inherits("value_loss") else False
         if not layout:
             return None
         action = tensordict.get(self.tensor_keys.action)
@@ -219,7 +224,7 @@ class FusedTD3Loss(TD3LossQ1Actor):
         through ``TanhModule``'s squashing, then through the actor's layers.
         tests/test_td3.py compares loss and gradients with stock ``TD3Loss.actor_loss``.
         """
-        layout = self._fused_layout_for(tensordict)
+        layout = self._fused_layout_for(tensordict) if self._inherits("actor_loss") else False
         if not layout:
             return None
         tanh_module = self.actor_network.module[1]
@@ -343,18 +348,19 @@ class TD3:
         policy_delay: critic updates per actor/target update.
         exploration_noise: std of the Gaussian noise added to actions when acting (paper: 0.1).
         loss_function: critic regression loss (``"l2"`` as in Fujimoto's TD3).
-        fast: the tuned configuration measured by ``benchmarks/td3_update.py`` (default):
-            :class:`FusedTD3Loss` (stacked twin critics, actor loss through the first critic
-            only, loss and gradients of both steps in one pass without autograd),
-            :class:`ForeachSoftUpdate` and fused Adam. ``False`` gives TorchRL's stock
-            ``TD3Loss`` + ``SoftUpdate`` + default Adam; both compute TD3's math (same losses,
-            gradients and target updates, tests/test_td3.py).
-        optimizer_impl: ``"fused"``, ``"foreach"`` or ``"default"`` (torch's choice, a per-tensor
-            loop on CPU); None follows ``fast``.
+        loss_class: the ``TD3Loss`` class (or a subclass) to build. Stock ``TD3Loss`` (the
+            reference, trained by autograd) or :class:`FusedTD3Loss`, whose
+            ``value_loss_backward``/``actor_loss_backward`` give the same losses and gradients
+            without autograd; :meth:`update` uses those methods where the loss has them.
+        target_update_class: ``SoftUpdate`` (the reference) or :class:`ForeachSoftUpdate`.
+        optimizer_impl: ``"default"`` (torch's ``Adam`` as constructed by default, the
+            reference), ``"foreach"``, or ``"fused"`` (fused Adam, stepped by one direct kernel
+            call: :func:`~torchrl_esrl.torchrl_private.fused_adam_step`).
         num_threads: torch threads while :func:`~torchrl_esrl.algorithm.td3_phase.td3_phase` runs
-            (None: leave the process's count). One thread measured fastest for these 256-wide
-            networks when OpenMP's wait policy is ``PASSIVE``, where every multi-threaded op pays
-            a thread wake-up (docs/performance.md).
+            (None: leave the process's count; docs/performance.md).
+
+    The reference is TorchRL's stock TD3 (``TD3Loss``, ``SoftUpdate``, ``Adam``);
+    :func:`torchrl_esrl.run.factories.make_td3` picks the fast pieces.
     """
 
     def __init__(
@@ -370,14 +376,14 @@ class TD3:
         policy_delay: int = 2,
         exploration_noise: float = 0.1,
         loss_function: str = "l2",
-        fast: bool = True,
-        optimizer_impl: str | None = None,
+        loss_class: type[TD3Loss] = TD3Loss,
+        target_update_class: type[SoftUpdate] = SoftUpdate,
+        optimizer_impl: str = "default",
         num_threads: int | None = None,
     ):
         self.actor = actor
         self.action_spec = action_spec
-        self.fast = bool(fast)
-        self.loss = (FusedTD3Loss if self.fast else TD3Loss)(
+        self.loss = loss_class(
             actor_network=actor,
             qvalue_network=critic,
             action_spec=action_spec,
@@ -389,12 +395,12 @@ class TD3:
             delay_qvalue=True,
         )
         self.loss.make_value_estimator(gamma=gamma)
-        self.target_update = (ForeachSoftUpdate if self.fast else SoftUpdate)(self.loss, tau=tau)
+        self.target_update = target_update_class(self.loss, tau=tau)
         # The loss shares storage with `actor`; the two critics live in the loss's stacked params.
-        impl = optimizer_impl or ("fused" if self.fast else "default")
-        if impl not in ("fused", "foreach", "default"):
-            raise ValueError(f"optimizer_impl must be fused, foreach or default, got {impl!r}")
-        options = {"fused": {"fused": True}, "foreach": {"foreach": True}, "default": {}}[impl]
+        if optimizer_impl not in ("fused", "foreach", "default"):
+            raise ValueError(f"optimizer_impl must be fused, foreach or default, got {optimizer_impl!r}")
+        self.optimizer_impl = optimizer_impl
+        options = {"fused": {"fused": True}, "foreach": {"foreach": True}, "default": {}}[optimizer_impl]
         self.actor_optimizer = torch.optim.Adam(list(actor.parameters()), lr=lr, **options)
         self.critic_optimizer = torch.optim.Adam(list(self.loss.qvalue_network_params.values(True, True)), lr=lr, **options)
         self.policy_delay = int(policy_delay)
@@ -408,7 +414,8 @@ class TD3:
     def update(self, batch: TensorDictBase) -> dict[str, float]:
         """One TD3 step: critic update; every ``policy_delay`` steps actor and target updates."""
         self.critic_optimizer.zero_grad(set_to_none=True)
-        critic_loss = self.loss.value_loss_backward(batch) if self.fast else None  # loss and gradients in one pass
+        manual = getattr(self.loss, "value_loss_backward", None)  # loss and gradients in one pass, where the loss has it
+        critic_loss = manual(batch) if manual is not None else None
         if critic_loss is None:
             critic_loss, _ = self.loss.value_loss(batch)
             critic_loss.backward()
@@ -419,7 +426,8 @@ class TD3:
         self.updates += 1
         if self.updates % self.policy_delay == 0:
             self.actor_optimizer.zero_grad(set_to_none=True)
-            actor_loss = self.loss.actor_loss_backward(batch) if self.fast else None
+            manual = getattr(self.loss, "actor_loss_backward", None)
+            actor_loss = manual(batch) if manual is not None else None
             if actor_loss is None:
                 actor_loss, _ = self.loss.actor_loss(batch)
                 actor_loss.backward()
@@ -431,8 +439,8 @@ class TD3:
         return out
 
     def _step(self, optimizer: torch.optim.Adam) -> None:
-        """``optimizer.step()``; fused Adam as one direct kernel call (same arithmetic, less Python)."""
-        fused_adam_step(optimizer) if self.fast else optimizer.step()
+        """``optimizer.step()``; fused Adam as one direct kernel call (same arithmetic)."""
+        fused_adam_step(optimizer) if self.optimizer_impl == "fused" else optimizer.step()
 
     def state_dict(self) -> dict:
         return {
