@@ -28,7 +28,7 @@ from torchrl_esrl.arrays import numpy_views
 PRIVATE_NAMES: dict[str, tuple[str, ...]] = {
     "torchrl.data.LazyTensorStorage": ("_storage", "_len", "_set_last_cursor", "_last_cursor", "_bump_mutation_revision"),
     "torchrl.data.TensorDictRoundRobinWriter": ("_cursor", "_write_count", "_track_generations", "_mark_update_entities"),
-    "torchrl.objectives.TD3Loss": ("_maybe_get_priority_weight", "_cached_detach_qvalue_network_params", "_reduce_loss"),
+    "torchrl.objectives.TD3Loss": ("_maybe_get_priority_weight", "_loss_mask_keys", "_cached_detach_qvalue_network_params", "_reduce_loss"),
     "torchrl.objectives.SoftUpdate": ("_target_names", "_sources", "_targets"),
     "torchrl.collectors.Collector": ("_carrier", "_frames", "_iter", "_traj_pool"),
     "torchrl.envs.GymEnv": ("_env",),
@@ -163,6 +163,17 @@ def loss_priority_weight(loss, tensordict):
     sampling). Used by the TD3 loss overrides to fall back to TorchRL's own code when weights
     are present; the public API has no getter (``LossModule._maybe_get_priority_weight``)."""
     return loss._maybe_get_priority_weight(tensordict)
+
+
+def reweights_or_masks(loss, tensordict) -> bool:
+    """Whether a TorchRL loss's reduction would weight (prioritised replay) or mask (its loss-mask
+    keys, e.g. ``("collector", "mask")``) this batch. The hand-written TD3 gradients compute the
+    plain batch mean only and hand such batches to TorchRL's own code; the public API has no
+    getter for either (``LossModule._maybe_get_priority_weight``, ``LossModule._loss_mask_keys``)."""
+    if loss._maybe_get_priority_weight(tensordict) is not None:
+        return True
+    keys = tensordict.keys(True)
+    return any(key in keys for key in loss._loss_mask_keys())
 
 
 def reduce_loss(loss, value, tensordict, weights):

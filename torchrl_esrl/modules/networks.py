@@ -22,7 +22,9 @@ from torch.nn.utils import parameters_to_vector, vector_to_parameters
 from torchrl.data import TensorSpec
 from torchrl.modules import MLP, TanhModule, ValueOperator
 
-ACTIVATIONS = {"tanh": nn.Tanh, "relu": nn.ReLU}
+from torchrl_esrl.threads import torch_threads
+
+ACTIVATIONS = {"tanh": nn.Tanh, "relu": nn.ReLU, "elu": nn.ELU}  # the fast pieces compute tanh and ReLU; others hand over to the reference
 
 
 def make_actor(
@@ -141,7 +143,13 @@ class ModulePopulation:
 
     @torch.no_grad()
     def __call__(self, params: torch.Tensor, observations: torch.Tensor, layers=None) -> torch.Tensor:
+        """Actions [P, act]; on one torch thread, as the batched forward runs (one observation per
+        call: threads would only wait on each other, and on the simulator's)."""
         layers = self.split(params) if layers is None else layers
+        with torch_threads(1):
+            return self._forward(layers, observations)
+
+    def _forward(self, layers, observations: torch.Tensor) -> torch.Tensor:
         actions = [
             functional_call(self.actor, member, (TensorDict(observation=observations[p : p + 1], batch_size=[1]),)).get("action")
             for p, member in enumerate(layers)

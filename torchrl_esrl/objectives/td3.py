@@ -17,7 +17,7 @@ from torchrl.modules import AdditiveGaussianModule
 from torchrl.objectives import SoftUpdate, TD3Loss
 
 from torchrl_esrl.modules.networks import squash
-from torchrl_esrl.torchrl_private import detached_qvalue_params, fused_adam_step, loss_priority_weight, reduce_loss, soft_update_tensors
+from torchrl_esrl.torchrl_private import detached_qvalue_params, fused_adam_step, loss_priority_weight, reduce_loss, reweights_or_masks, soft_update_tensors
 
 
 class TD3LossQ1Actor(TD3Loss):
@@ -143,8 +143,9 @@ class FusedTD3Loss(TD3LossQ1Actor):
         return layout
 
     def _fused_layout_for(self, tensordict):
-        """:meth:`_fused_layout`, or False for a batch with prioritised weights (TorchRL's code handles those)."""
-        return self._fused_layout() if loss_priority_weight(self, tensordict) is None else False
+        """:meth:`_fused_layout`, or False for a batch with prioritised weights or loss masks
+        (TorchRL's code and autograd handle those)."""
+        return False if reweights_or_masks(self, tensordict) else self._fused_layout()
 
     def _inherits(self, name: str) -> bool:
         """Whether ``name`` (``value_loss``, ``actor_loss``) is this class's own: a subclass that
