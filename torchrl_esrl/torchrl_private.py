@@ -1,4 +1,4 @@
-"""Every use of a TorchRL (or tensordict, or torch) private attribute in this project, fenced in one place.
+"""Every use of a private attribute of TorchRL, tensordict, torch (or gymnasium) in this project, fenced in one place.
 
 TorchRL's public API does not cover a few things this project needs (the reasons are given per
 function). Each access goes through a function here, so a TorchRL upgrade that renames one breaks
@@ -33,6 +33,7 @@ PRIVATE_NAMES: dict[str, tuple[str, ...]] = {
     "torchrl.collectors.Collector": ("_carrier", "_frames", "_iter", "_traj_pool"),
     "torchrl.envs.GymEnv": ("_env",),
     "tensordict.TensorDict": ("_new_unsafe", "_tensordict"),
+    "torch": ("_foreach_lerp_", "_foreach_add_", "_fused_adam_"),
 }
 
 # ------------------------------------------------------------------------ data (replay buffers)
@@ -248,7 +249,7 @@ def detached_qvalue_params(loss):
     return loss._cached_detach_qvalue_network_params
 
 
-# ------------------------------------------------------------------ collectors (TD3 env state)
+# ------------------------------------------------------------------ collectors (TD3 env)
 def gym_env_of(env):
     """The gymnasium env inside a TorchRL ``GymEnv``, possibly under ``TransformedEnv`` layers.
     ``GymEnv`` keeps it as ``_env`` with no public accessor; the fast TD3 stepping path and the
@@ -272,3 +273,85 @@ def restore_collector(collector, frames: int, iterations: int, carrier, traj_poo
     if traj_pool_state is not None:
         collector._traj_pool.load_state_dict(traj_pool_state)
     collector._carrier = carrier
+
+
+# ------------------------------------------------------------------ collectors (TD3 env state)
+_SCALARS = (bool, int, float, str, type(None))
+
+
+def _gym_layers(gym_env):
+    layers = [gym_env]
+    while hasattr(layers[-1], "env"):
+        layers.append(layers[-1].env)
+    return layers
+
+
+def gym_env_state(gym_env) -> dict:
+    """A gymnasium env's state mid-episode: each wrapper's scalar attributes (``TimeLimit``'s
+    ``_elapsed_steps``, ``OrderEnforcing``'s ``_has_reset``...), the core env's ``np_random`` and
+    arrays, and for MuJoCo envs the full integration state from ``mj_getState``.
+
+    Why private: gymnasium wrappers keep their episode state in private attributes with no
+    getter or setter, and TorchRL's ``GymEnv``/``Collector`` state dicts leave the simulator out;
+    a checkpoint taken mid-episode must resume the very episode. Every scalar attribute is copied
+    (not a list of names), so a renamed attribute is still saved and restored;
+    ``tests/test_td3.py`` resumes a collector mid-episode and compares the frames."""
+    layers = _gym_layers(gym_env)
+    core = layers[-1]
+    state = {
+        "wrappers": [{k: v for k, v in vars(w).items() if isinstance(v, _SCALARS) and k != "_saved_kwargs"} for w in layers[:-1]],
+        "core": {k: v.copy() if isinstance(v, np.ndarray) else v for k, v in vars(core).items() if isinstance(v, (np.ndarray, *_SCALARS)) and not k.startswith("_ezpickle")},
+        "np_random": core.np_random.bit_generator.state,
+    }
+    if hasattr(core, "model") and hasattr(core, "data"):
+        import mujoco
+
+        spec = mujoco.mjtState.mjSTATE_INTEGRATION
+        physics = np.empty(mujoco.mj_stateSize(core.model, spec))
+        mujoco.mj_getState(core.model, core.data, physics, spec)
+        state["mujoco"] = physics
+    return state
+
+
+def load_gym_env_state(gym_env, state: dict) -> None:
+    """Restore :func:`gym_env_state`'s snapshot into ``gym_env`` (its wrappers and core env)."""
+    layers = _gym_layers(gym_env)
+    for layer, attributes in zip(layers[:-1], state["wrappers"]):
+        vars(layer).update(attributes)
+    core = layers[-1]
+    vars(core).update(state["core"])
+    core.np_random.bit_generator.state = state["np_random"]
+    if "mujoco" in state:
+        import mujoco
+
+        mujoco.mj_setState(core.model, core.data, np.asarray(state["mujoco"], dtype=np.float64), mujoco.mjtState.mjSTATE_INTEGRATION)
+
+
+# ------------------------------------------------------------- gymnasium MuJoCo task constants
+GYM_MUJOCO_CONSTANTS = (
+    "_forward_reward_weight", "_ctrl_cost_weight", "_healthy_reward", "_terminate_when_unhealthy",
+    "_healthy_z_range", "_healthy_angle_range", "_healthy_state_range", "_contact_cost_weight",
+    "_contact_force_range", "_main_body", "_exclude_current_positions_from_observation",
+    "_include_cfrc_ext_in_observation",
+)  # fmt: skip
+
+
+def gym_mujoco_constants(env) -> dict:
+    """The reward and termination constants of a gymnasium v5 MuJoCo env (those of
+    :data:`GYM_MUJOCO_CONSTANTS` it has), as its ``step`` reads them.
+
+    Why private: gymnasium keeps its constructor arguments in private attributes only; the
+    batched ES backend recomputes rewards from them so that it cannot drift from gymnasium's
+    values. ``tests/test_torchrl_private.py`` checks, per task, that every constant the task's
+    rules read is still there; ``tests/test_mujoco_batch.py`` compares the rewards."""
+    return {k: getattr(env, k) for k in GYM_MUJOCO_CONSTANTS if hasattr(env, k)}
+
+
+# ----------------------------------------------------------------------------------- torch ops
+def foreach_lerp_(targets: list, sources: list, weight: float) -> None:
+    """``target.lerp_(source, weight)`` for every pair, as one call.
+
+    Why private: ``torch._foreach_lerp_`` is the multi-tensor kernel torch's own optimisers use;
+    torch has no public foreach API. ``tests/test_torchrl_private.py`` compares it with
+    ``lerp_`` tensor by tensor."""
+    torch._foreach_lerp_(targets, sources, weight)

@@ -34,6 +34,7 @@ import torch
 from torchrl_esrl.collectors.generation import Generation, transitions_from_arrays
 from torchrl_esrl.envs import make_gym_env, resolve_env_id
 from torchrl_esrl.modules.networks import Mirrored, PopulationActor, one_blas_thread
+from torchrl_esrl.torchrl_private import gym_mujoco_constants
 
 _INTEGRATION_STATE = mujoco.mjtState.mjSTATE_INTEGRATION
 
@@ -77,15 +78,6 @@ TASKS: dict[str, TaskRules] = {
     "Hopper-v5": TaskRules(1, 10.0, None, _hopper_healthy, False),
     "Ant-v5": TaskRules(2, None, 1, _ant_healthy, True),
 }
-
-# Constants read from the gymnasium env, so the batch computes with gymnasium's own values.
-_CONSTANTS = (
-    "_forward_reward_weight", "_ctrl_cost_weight", "_healthy_reward", "_terminate_when_unhealthy",
-    "_healthy_z_range", "_healthy_angle_range", "_healthy_state_range", "_contact_cost_weight",
-    "_contact_force_range", "_main_body", "_exclude_current_positions_from_observation",
-    "_include_cfrc_ext_in_observation",
-)  # fmt: skip
-
 
 @dataclass(frozen=True)
 class _Chunk:
@@ -178,7 +170,7 @@ class MujocoBatchBackend:
         self._pool: ThreadPoolExecutor | None = None
         reset_env = self.workers[0].reset_env
         env = reset_env.unwrapped
-        self.constants = {k: getattr(env, k) for k in _CONSTANTS if hasattr(env, k)}
+        self.constants = gym_mujoco_constants(env)  # gymnasium's own values, so the batch cannot drift from them
         if not self.constants.get("_exclude_current_positions_from_observation", True):
             raise ValueError("mujoco_batch backend handles the default observation only")
         self.model = env.model

@@ -19,7 +19,7 @@ from torchrl.modules import AdditiveGaussianModule, TanhModule
 from torchrl_esrl.envs import TD3_TRANSFORMS
 from torchrl_esrl.modules.networks import squash
 from torchrl_esrl.modules.warmup import RandomWarmup
-from torchrl_esrl.torchrl_private import collector_carrier, gym_env_of, restore_collector, unchecked_tensordict
+from torchrl_esrl.torchrl_private import collector_carrier, gym_env_of, gym_env_state, load_gym_env_state, restore_collector, unchecked_tensordict
 
 _ACTIVATION_FUNCTIONS = {torch.nn.Tanh: torch.tanh, torch.nn.ReLU: torch.relu}  # what each module's forward computes
 
@@ -230,51 +230,6 @@ def finished_episode_returns(batch: TensorDictBase) -> list[float]:
     if not done.any():
         return []
     return batch.get(("next", "episode_reward")).reshape(-1)[done].tolist()
-
-
-# ---------------------------------------------- the TD3 env mid-episode, for checkpoints
-_SCALARS = (bool, int, float, str, type(None))
-
-
-def _gym_layers(gym_env):
-    layers = [gym_env]
-    while hasattr(layers[-1], "env"):
-        layers.append(layers[-1].env)
-    return layers
-
-
-def gym_env_state(gym_env) -> dict:
-    """A gymnasium env's state mid-episode: each wrapper's scalar attributes (``TimeLimit``'s
-    elapsed steps, ``OrderEnforcing``'s reset flag...), the core env's ``np_random`` and arrays,
-    and for MuJoCo envs the full integration state from ``mj_getState``."""
-    layers = _gym_layers(gym_env)
-    core = layers[-1]
-    state = {
-        "wrappers": [{k: v for k, v in vars(w).items() if isinstance(v, _SCALARS) and k != "_saved_kwargs"} for w in layers[:-1]],
-        "core": {k: v.copy() if isinstance(v, np.ndarray) else v for k, v in vars(core).items() if isinstance(v, (np.ndarray, *_SCALARS)) and not k.startswith("_ezpickle")},
-        "np_random": core.np_random.bit_generator.state,
-    }
-    if hasattr(core, "model") and hasattr(core, "data"):
-        import mujoco
-
-        spec = mujoco.mjtState.mjSTATE_INTEGRATION
-        physics = np.empty(mujoco.mj_stateSize(core.model, spec))
-        mujoco.mj_getState(core.model, core.data, physics, spec)
-        state["mujoco"] = physics
-    return state
-
-
-def load_gym_env_state(gym_env, state: dict) -> None:
-    layers = _gym_layers(gym_env)
-    for layer, attributes in zip(layers[:-1], state["wrappers"]):
-        vars(layer).update(attributes)
-    core = layers[-1]
-    vars(core).update(state["core"])
-    core.np_random.bit_generator.state = state["np_random"]
-    if "mujoco" in state:
-        import mujoco
-
-        mujoco.mj_setState(core.model, core.data, np.asarray(state["mujoco"], dtype=np.float64), mujoco.mjtState.mjSTATE_INTEGRATION)
 
 
 class TD3EnvState:

@@ -17,7 +17,7 @@ from torchrl.modules import AdditiveGaussianModule
 from torchrl.objectives import SoftUpdate, TD3Loss
 
 from torchrl_esrl.modules.networks import squash
-from torchrl_esrl.torchrl_private import detached_qvalue_params, fused_adam_step, loss_priority_weight, reduce_loss, reweights_or_masks, soft_update_tensors
+from torchrl_esrl.torchrl_private import detached_qvalue_params, foreach_lerp_, fused_adam_step, loss_priority_weight, reduce_loss, reweights_or_masks, soft_update_tensors
 
 
 class TD3LossQ1Actor(TD3Loss):
@@ -317,7 +317,7 @@ class _FusedLayout:
 
 
 class ForeachSoftUpdate(SoftUpdate):
-    """``SoftUpdate`` with one ``torch._foreach_lerp_`` over all target tensors.
+    """``SoftUpdate`` with one foreach ``lerp_`` over all target tensors.
 
     ``SoftUpdate.step`` looks the targets up through the loss module and calls ``lerp_`` once per
     tensor (14 tensors here, ~0.7 ms of Python a step measured against ~0.07 ms for one foreach
@@ -332,7 +332,7 @@ class ForeachSoftUpdate(SoftUpdate):
         pairs = self.__dict__.get("_pairs")
         if pairs is None:
             pairs = self.__dict__["_pairs"] = soft_update_tensors(self)
-        torch._foreach_lerp_(pairs[1], pairs[0], 1 - self.eps)
+        foreach_lerp_(pairs[1], pairs[0], 1 - self.eps)
 
 
 class TD3:
