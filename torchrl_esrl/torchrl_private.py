@@ -45,8 +45,8 @@ def unchecked_tensordict(source: dict, batch_size: torch.Size, device) -> Tensor
     leaves built to fit: CPU tensors on ``device`` whose leading dims are ``batch_size``.
 
     Why private: the TD3 collector builds one 8-leaf TensorDict per frame, and the public
-    constructor's per-leaf validation is ~25 us of a ~0.3 ms frame; ``TensorDict._new_unsafe``
-    is tensordict's own constructor for data it already knows to be valid.
+    constructor validates every leaf again; ``TensorDict._new_unsafe`` is tensordict's own
+    constructor for data it already knows to be valid (docs/performance.md, "buffer_writes").
     ``tests/test_torchrl_private.py`` checks it against the public constructor.
     """
     return TensorDict._new_unsafe(source, batch_size=batch_size, device=device)
@@ -57,8 +57,8 @@ def tensordict_leaves(data: TensorDictBase, keys) -> list:
     (``get`` itself for other TensorDict types, or where a key does not lead to a tensor).
 
     Why private: the TD3 side writes one 7-key transition per frame, and ``get`` of a nested key
-    costs ~1.5 us of key handling, ~10 us a frame; ``TensorDict._tensordict`` is the dict ``get``
-    reads from. ``tests/test_torchrl_private.py`` checks it against ``get``.
+    goes through tensordict's key handling each time; ``TensorDict._tensordict`` is the dict
+    ``get`` reads from. ``tests/test_torchrl_private.py`` checks it against ``get``.
     """
     leaves = []
     for key in keys:
@@ -76,9 +76,8 @@ def tensor_storage_data(storage) -> TensorDictBase | None:
     Why private: the MultiBuffer gathers a batch from three storages straight into one
     preallocated TensorDict (one ``index_select`` per key and buffer). The public
     ``storage.get(index)`` builds a new TensorDict per call (after slicing ``[:len]`` when the
-    storage is not full), and three of those plus a ``torch.cat`` cost about 2.5x one buffer's
-    ``sample`` (``benchmarks/buffer_sampling.py``, "naive"). No public accessor returns the
-    storage's tensors themselves.
+    storage is not full), then the parts are concatenated (``benchmarks/buffer_sampling.py``,
+    "naive"). No public accessor returns the storage's tensors themselves.
     """
     if not isinstance(storage, TensorStorage) or not storage.initialized:
         return None
@@ -97,8 +96,8 @@ def append_rows(buffer, data: TensorDictBase, keys=None) -> torch.Tensor | None:
     as ``extend(data.select(*keys))`` would (``data`` may hold more); all of ``data``'s otherwise.
 
     Why private: the TD3 side writes one transition per frame, and ``TensorDictReplayBuffer.extend``
-    spends ~0.24 ms of TensorDict machinery (inverse transform, ``to``, validation of every
-    leaf) on it, as much as stepping the env and the actor (``benchmarks/td3_frame.py``). The
+    runs its TensorDict machinery (inverse transform, ``to``, validation of every leaf) on each
+    (``benchmarks/td3_frame.py``, docs/performance.md). The
     writer's cursor and the storage's length have no public setters. ``tests/test_torchrl_private.py``
     compares this path with ``extend`` on a wrapping buffer: contents, length, cursor, state dicts.
     """
@@ -123,8 +122,8 @@ def append_rows(buffer, data: TensorDictBase, keys=None) -> torch.Tensor | None:
         if not isinstance(stored, TensorDictBase) or sorted(map(str, [*keys, "index"])) != sorted(map(str, stored.keys(True, True))):
             return None
         destinations, index_leaf = [stored.get(key) for key in keys], stored.get("index")
-        # numpy views of CPU storage: a one-row slice copy through numpy costs ~0.2 us against
-        # ~2 us for torch's __setitem__ (the TD3 side writes one row per frame).
+        # numpy views of CPU storage: a one-row slice copy through numpy skips torch's
+        # __setitem__ dispatch (the TD3 side writes one row per frame).
         arrays = numpy_views([*destinations, index_leaf])
         kinds = [(d.dtype, d.shape[1:]) for d in destinations]
         layout = _APPEND_LAYOUTS[buffer] = (stored, keys, destinations, index_leaf, arrays, kinds)
@@ -134,7 +133,7 @@ def append_rows(buffer, data: TensorDictBase, keys=None) -> torch.Tensor | None:
         return None  # extend casts (or refuses) as TorchRL decides
     rows, capacity = data.batch_size[0], storage.max_size
     cursor = writer._cursor
-    index = torch.from_numpy(np.arange(cursor, cursor + rows, dtype=np.int64))  # torch.arange's values, ~5x cheaper for a few rows
+    index = torch.from_numpy(np.arange(cursor, cursor + rows, dtype=np.int64))  # torch.arange's values, without its dispatch
     sources = numpy_views(values) if cursor + rows <= capacity and arrays is not None else None
     writer._cursor = (cursor + rows) % capacity
     writer._write_count += rows
@@ -148,7 +147,7 @@ def append_rows(buffer, data: TensorDictBase, keys=None) -> torch.Tensor | None:
             destination[where] = value
         stored_index[where] = index
     # What _set_last_cursor(index) records (the index, and its last entry as the shared int),
-    # without its tensor reshape, indexing and item (~2.5 us a frame).
+    # without its tensor reshape, indexing and item.
     storage._set_last_cursor((cursor + rows - 1) % capacity)
     storage._last_cursor = index
     storage._len = min(storage._len + rows, capacity)
@@ -209,8 +208,8 @@ def fused_adam_step(optimizer: torch.optim.Adam) -> None:
     """``optimizer.step()`` of a fused (``fused=True``) torch Adam, as one call of the kernel it
     runs (``torch._fused_adam_``) after the same step-count increment (``torch._foreach_add_``).
 
-    ``Optimizer.step`` spends ~30-40 us of Python per call around that kernel (hooks, state
-    lookups, option checks), ~1% of a TD3 update on 2 CPU cores. The state tensors are torch's
+    ``Optimizer.step`` runs Python around that kernel (hooks, state lookups, option checks) on
+    every call (docs/performance.md, "adam"). The state tensors are torch's
     own (``state_dict`` and checkpoints unchanged); the lists are rebuilt when the state dict
     object changes (``load_state_dict`` replaces it). Anything but one parameter group of plain
     fused Adam with every gradient present goes through ``optimizer.step()``, which also makes

@@ -114,7 +114,7 @@ class ExactRatioSampler(SamplerEnsemble):
         self._ids_cache: dict = {}
 
     # Each rule below reads the members' sizes once (``len`` of a TorchRL storage is a
-    # compile-guarded call, ~5 us each, and sampling is on the hot path of every TD3 update).
+    # compile-guarded call, and sampling is on the hot path of every TD3 update).
     def _ready_members(self, sizes: Sequence[int]) -> list[bool]:
         need = max(self.min_size, 1)
         return [r > 0 and size >= need for r, size in zip(self.ratio, sizes)]
@@ -129,7 +129,7 @@ class ExactRatioSampler(SamplerEnsemble):
         return tuple(r if ready else 0.0 for r, ready in zip(self.ratio, self._ready_members(sizes)))
 
     def _counts(self, sizes: Sequence[int], batch_size: int) -> tuple[int, ...]:
-        """``ratio_counts`` of the effective ratio, memoised (it sorts in Python, ~10 us a call)."""
+        """``ratio_counts`` of the effective ratio, memoised (it sorts in Python)."""
         key = (int(batch_size), self._effective_ratio(sizes))
         counts = self._counts_cache.get(key)
         if counts is None:
@@ -266,8 +266,7 @@ class ExactRatioStorage(StorageEnsemble):
         keys, tensors, arrays = leaves
         total = buffer_ids.numel()
         outs = {}
-        # CPU storages: numpy's take (~1-2 us a call for a few hundred rows, against ~4 us for
-        # torch.index_select); the same rows, copied exactly.
+        # CPU storages: numpy's take, without torch.index_select's dispatch; the same rows, copied exactly.
         member_indices = None if arrays is None else numpy_views(member_index for _, member_index, _ in groups)
         for position, key in enumerate(keys):
             reference = tensors[groups[0][0]][position]

@@ -192,10 +192,8 @@ class PopulationActor:
     up to float32 rounding), as one ``numpy.einsum("poi,pi->po")`` per layer over views of the
     flat vectors. Written by hand because no library call fits this shape well: each member
     multiplies its own weight matrix by one observation, so a generation is P matrix-vector
-    products that read all P x D parameters per step. Measured on the 2-core machine (120
-    members, HalfCheetah sizes, one thread): this einsum 2.4 ms, ``torch.baddbmm`` per layer
-    5.5 ms, ``numpy.matmul`` 3.7 ms, ``vmap(functional_call)`` and a loop over modules slower
-    still (``benchmarks/es_population.py``; ``shared/notes/stack-facts.md``). Every member's
+    products that read all P x D parameters per step (the alternatives measured:
+    ``benchmarks/es_population.py``, docs/performance.md). Every member's
     arithmetic is its own, so the forward over any contiguous block of members gives them
     bit for bit the actions of the forward over all P (``tests/test_networks.py``).
     """
@@ -256,9 +254,7 @@ class PopulationActor:
         the center (which stays in cache) and one with the pair's offsets, which are read once for
         both members, half of what :meth:`__call__` reads. Every pair gets products of the same
         shapes, so a block of pairs gets bit for bit the actions of all K (one product over all
-        2K observations would not: BLAS picks its kernel by size). Measured on the 2-core machine
-        (60 pairs, HalfCheetah sizes, one thread, in cache): 0.8-1.3 ms against 1.6-1.7 ms for
-        :meth:`__call__` on the same members. The same actions up to float32 rounding, not bit for
+        2K observations would not: BLAS picks its kernel by size). The same actions up to float32 rounding, not bit for
         bit: the sums are split differently (tests/test_networks.py). Its matrix products go to
         numpy's BLAS: callers run it under :func:`one_blas_thread`.
         """

@@ -64,9 +64,8 @@ def _plain_mlp(module: nn.Module):
 class _NumpyTanh(torch.autograd.Function):
     """``tanh`` computed by numpy, with torch's own ``tanh_backward`` (``grad * (1 - y^2)``).
 
-    Written by hand because torch 2.13's CPU ``tanh`` is the slow op of this update: ~170 us per
-    256x256 float32 call on one thread against ~25 us for ``numpy.tanh`` (its AVX-512 kernel),
-    measured on the 2-core machine (docs/performance.md). The two agree to one float32 rounding
+    Written by hand because torch 2.13's CPU ``tanh`` measured slower than ``numpy.tanh`` on
+    the update's 256x256 float32 activations (docs/performance.md). The two agree to one float32 rounding
     step; tests/test_td3.py compares the loss and its gradients with stock ``TD3Loss``.
     """
 
@@ -173,8 +172,8 @@ class FusedTD3Loss(TD3LossQ1Actor):
         ``.grad`` (as ``zero_grad(set_to_none=True)`` then ``backward()`` would) and returns the
         loss. None where the fused path does not apply (the caller then uses ``value_loss``).
 
-        Written by hand because autograd's bookkeeping (~20 graph nodes for the stacked critics,
-        ~15 us each on this CPU) is ~5% of a TD3 update of the paper's networks; the gradient is
+        Written by hand because autograd's graph bookkeeping around these small matmuls is a
+        share of a TD3 update of the paper's networks (docs/performance.md, "td3_loss"); the gradient is
         the chain rule through the same ``bmm`` layers, layer by layer:
         ``dW = g^T x``, ``db = sum_batch g``, ``g <- (g W) * act'``, from
         ``g = dL/dQ = 2 (Q - y) / B``. tests/test_td3.py compares loss and gradients with
@@ -320,8 +319,7 @@ class ForeachSoftUpdate(SoftUpdate):
     """``SoftUpdate`` with one foreach ``lerp_`` over all target tensors.
 
     ``SoftUpdate.step`` looks the targets up through the loss module and calls ``lerp_`` once per
-    tensor (14 tensors here, ~0.7 ms of Python a step measured against ~0.07 ms for one foreach
-    call); the arithmetic is the same ``target.lerp_(source, tau)``, so results are identical
+    tensor; the arithmetic is the same ``target.lerp_(source, tau)``, so results are identical
     (tests/test_td3.py). The source/target tensor lists are built once: TorchRL keeps the
     parameters in place for the life of the loss.
     """
