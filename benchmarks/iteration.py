@@ -41,7 +41,7 @@ from omegaconf import OmegaConf
 
 from torchrl_esrl.envs import quiet_logs
 from torchrl_esrl.run.factories import (
-    FAST_PIECES, make_actor_critic, make_es, make_es_collector, make_multibuffer, make_td3, make_td3_batches, make_threshold,
+    FAST_PIECES, make_actor_critic, make_es, make_es_collector, make_multibuffer, make_td3, make_frame_batches, make_threshold,
     make_train_env,
 )
 from torchrl_esrl.modules.networks import flat_parameters
@@ -92,7 +92,7 @@ class Setup:
         train_env = make_train_env(cfg)
         self.actor, critic = make_actor_critic(cfg, train_env)
         self.td3 = make_td3(cfg, self.actor, critic, train_env.action_spec, pieces=self.pieces)
-        self.collector, self.batches = make_td3_batches(cfg, train_env, self.td3, pieces=self.pieces)
+        self.collector, self.batches = make_frame_batches(cfg, train_env, self.td3, pieces=self.pieces)
         self.buffer = make_multibuffer(cfg, pieces=self.pieces)
         self.es, self.es_collector, self.threshold = make_es(cfg, self.actor), make_es_collector(cfg, self.actor, pieces=self.pieces), make_threshold(cfg)
         self.obs_dim, self.act_dim = train_env.observation_spec["observation"].shape[-1], train_env.action_spec.shape[-1]

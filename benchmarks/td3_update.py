@@ -10,7 +10,7 @@ method. Methods, interleaved in one run:
   plain_2threads  the same on 2 threads
   plain_fused   the same with fused Adam (reference: what the baseline gets from the same trick)
   torchrl_stock TD3() (the reference): TorchRL TD3Loss + SoftUpdate + default Adam
-  torchrl_fast  TD3 with make_td3's fast pieces: FusedTD3Loss (stacked twin critics, Q1-only
+  torchrl_fast  TD3 with make_td3's fast pieces: ManualGradTD3Loss (stacked twin critics, Q1-only
                 actor loss, gradients without autograd) + ForeachSoftUpdate + fused Adam, 1 thread
   torchrl_fast_2threads  the same on 2 threads (the TD3 phase's ``td3.num_threads: 2``, as the
                 recipes run it)
@@ -42,9 +42,9 @@ from torchrl.data import Bounded
 
 from torchrl_esrl.data.multibuffer import MultiBuffer
 from torchrl_esrl.modules.networks import make_actor, make_critic
-from torchrl_esrl.objectives.td3 import TD3, ForeachSoftUpdate, FusedTD3Loss
+from torchrl_esrl.objectives.td3 import TD3, ForeachSoftUpdate, ManualGradTD3Loss
 
-FAST_TD3 = {"loss_class": FusedTD3Loss, "target_update_class": ForeachSoftUpdate, "optimizer_impl": "fused"}  # make_td3's fast pieces
+FAST_TD3 = {"loss_class": ManualGradTD3Loss, "target_update_class": ForeachSoftUpdate, "optimizer_impl": "fused"}  # make_td3's fast pieces
 
 
 def _mlp(inputs: int, outputs: int, activation, squash: bool = False) -> nn.Sequential:

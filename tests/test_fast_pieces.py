@@ -10,10 +10,10 @@ from torchrl_esrl.collectors.es_collector import ESCollector
 from torchrl_esrl.collectors.td3_collector import GymTD3Collector
 from torchrl_esrl.envs import make_env, make_gym_env
 from torchrl_esrl.modules.networks import Mirrored, ModulePopulation, PopulationActor, flat_parameters, load_flat_parameters, make_actor, make_critic
-from torchrl_esrl.objectives.td3 import TD3, ForeachSoftUpdate, FusedTD3Loss
-from torchrl_esrl.run.factories import FAST_PIECES, es_population, make_td3, make_td3_batches
+from torchrl_esrl.objectives.td3 import TD3, ForeachSoftUpdate, ManualGradTD3Loss
+from torchrl_esrl.run.factories import FAST_PIECES, es_population, make_td3, make_frame_batches
 
-FAST = {"loss_class": FusedTD3Loss, "target_update_class": ForeachSoftUpdate, "optimizer_impl": "fused"}  # make_td3's fast pieces
+FAST = {"loss_class": ManualGradTD3Loss, "target_update_class": ForeachSoftUpdate, "optimizer_impl": "fused"}  # make_td3's fast pieces
 
 
 def _config(implementation="fast", **td3):
@@ -90,7 +90,7 @@ def test_fast_es_evaluation_gives_the_reference_returns_over_the_first_steps(kin
 # ---------------------------------------------------------------------------- TD3 acting
 def test_gym_td3_collector_refuses_another_transform_and_the_factory_hands_over():
     """A transform added to the TD3 env: GymTD3Collector (which reproduces make_env's transforms)
-    refuses in one line; make_td3_batches hands over to TorchRL's Collector, which applies it."""
+    refuses in one line; make_frame_batches hands over to TorchRL's Collector, which applies it."""
     from torchrl.envs import ObservationNorm
 
     env = make_env("hopper", seed=0, max_episode_steps=20)
@@ -101,7 +101,7 @@ def test_gym_td3_collector_refuses_another_transform_and_the_factory_hands_over(
     with pytest.raises(ValueError) as error:
         GymTD3Collector(env, td3, 5)
     assert "\n" not in str(error.value) and "ObservationNorm" in str(error.value)
-    collector, frames = make_td3_batches(_config(), env, td3)
+    collector, frames = make_frame_batches(_config(), env, td3)
     assert type(collector).__name__ == "Collector"
     batch = next(frames)
     collector.shutdown()
@@ -114,7 +114,7 @@ def test_gym_td3_collector_hands_an_actor_with_other_layers_to_the_collector(kin
     env = make_env("hopper", seed=0, max_episode_steps=20)
     td3 = make_td3(_config(), _actor(env, kind), make_critic(11, 3, (32, 32)), env.action_spec)
     assert not GymTD3Collector.supports(env, td3)
-    collector, _ = make_td3_batches(_config(), env, td3)
+    collector, _ = make_frame_batches(_config(), env, td3)
     assert type(collector).__name__ == "Collector"
     collector.shutdown()
 
@@ -130,7 +130,7 @@ def _batch(n=64, **extra):
 
 
 def _td3_pair(loss_class, **kwargs):
-    """(reference-seeded TD3 with ``loss_class`` and the fast pieces, the same with FusedTD3Loss)."""
+    """(reference-seeded TD3 with ``loss_class`` and the fast pieces, the same with ManualGradTD3Loss)."""
     from torchrl.data import Bounded
 
     spec = Bounded(-torch.ones(6), torch.ones(6), shape=(6,))
@@ -139,22 +139,22 @@ def _td3_pair(loss_class, **kwargs):
     import copy
 
     pair = []
-    for cls in (loss_class, FusedTD3Loss):
+    for cls in (loss_class, ManualGradTD3Loss):
         torch.manual_seed(1)
         pair.append(TD3(copy.deepcopy(actor), copy.deepcopy(critic), spec, **{**FAST, "loss_class": cls}, **kwargs))
     return pair
 
 
 def test_a_loss_subclass_overriding_value_loss_or_actor_loss_is_what_td3_trains():
-    """TD3.update's hand-written gradients are FusedTD3Loss's own losses: a subclass that
+    """TD3.update's hand-written gradients are ManualGradTD3Loss's own losses: a subclass that
     overrides value_loss or actor_loss is trained on its override, through autograd."""
 
-    class DoubledCritic(FusedTD3Loss):
+    class DoubledCritic(ManualGradTD3Loss):
         def value_loss(self, tensordict):
             loss, metadata = super().value_loss(tensordict)
             return 2 * loss, metadata
 
-    class HalvedActor(FusedTD3Loss):
+    class HalvedActor(ManualGradTD3Loss):
         def actor_loss(self, tensordict):
             loss, metadata = super().actor_loss(tensordict)
             return 0.5 * loss, metadata
@@ -184,7 +184,7 @@ def test_weighted_or_masked_batches_are_handed_to_torchrl(extra):
     else:
         batch = _batch()
         batch.set(("collector", "mask"), torch.rand(64, generator=generator) > 0.3)
-    fast, _ = _td3_pair(FusedTD3Loss)
+    fast, _ = _td3_pair(ManualGradTD3Loss)
     assert fast.loss.value_loss_backward(batch) is None and fast.loss.actor_loss_backward(batch) is None
     reference = _td3_pair(TD3Loss)[0]  # stock TD3Loss and autograd, the other pieces as in fast
     plain_batch = _batch()

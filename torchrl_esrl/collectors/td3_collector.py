@@ -4,7 +4,7 @@ Two equal paths over the training env of :func:`torchrl_esrl.envs.make_env`, act
 exploration policy: TorchRL's ``Collector`` (the reference, :func:`make_td3_collector`) and
 :class:`GymTD3Collector`, which steps the same gymnasium env directly. Both yield TensorDicts with
 the replay buffer's transition keys and ``("next", "episode_reward")``;
-:func:`torchrl_esrl.run.factories.make_td3_batches` picks one.
+:func:`torchrl_esrl.run.factories.make_frame_batches` picks one.
 """
 from __future__ import annotations
 

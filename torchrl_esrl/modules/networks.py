@@ -9,6 +9,7 @@ for a whole ES population, for the plain MLP actors of `make_actor`).
 """
 from __future__ import annotations
 
+import threading
 from dataclasses import dataclass
 
 import numpy as np
@@ -127,6 +128,9 @@ class ModulePopulation:
 
     def __init__(self, actor: nn.Module):
         self.actor = actor
+        # functional_call swaps the members' tensors into the one module: one forward at a time
+        # (the batched backends call it from several worker threads).
+        self.lock = threading.Lock()
         named = list(actor.named_parameters())
         self.names = [name for name, _ in named]
         self.shapes = [p.shape for _, p in named]
@@ -146,8 +150,14 @@ class ModulePopulation:
         """Actions [P, act]; on one torch thread, as the batched forward runs (one observation per
         call: threads would only wait on each other, and on the simulator's)."""
         layers = self.split(params) if layers is None else layers
-        with torch_threads(1):
+        with self.lock, torch_threads(1):
             return self._forward(layers, observations)
+
+    def __getstate__(self) -> dict:  # picklable for Ray workers: a lock of their own
+        return {k: v for k, v in self.__dict__.items() if k != "lock"}
+
+    def __setstate__(self, state: dict) -> None:
+        self.__dict__.update(state, lock=threading.Lock())
 
     def _forward(self, layers, observations: torch.Tensor) -> torch.Tensor:
         actions = [

@@ -82,7 +82,7 @@ class _NumpyTanh(torch.autograd.Function):
 
 
 def _tanh(x: torch.Tensor) -> torch.Tensor:
-    """Hidden ``tanh`` of the fused losses: numpy's kernel, in place when no gradient is needed
+    """Hidden ``tanh`` of the hand-written losses: numpy's kernel, in place when no gradient is needed
     (``x`` is a fresh layer output there)."""
     if x.device.type != "cpu" or x.dtype not in (torch.float32, torch.float64):
         return torch.tanh(x)
@@ -98,9 +98,10 @@ _ACTIVATIONS = {nn.Tanh: _tanh, nn.ReLU: torch.relu}
 _ACTIVATION_BACKWARD = {_tanh: torch.ops.aten.tanh_backward, torch.relu: lambda grad, out: torch.ops.aten.threshold_backward(grad, out, 0)}
 
 
-class FusedTD3Loss(TD3LossQ1Actor):
-    """:class:`TD3LossQ1Actor` whose ``value_loss`` runs the twin critics as one stacked network
-    and whose losses use the parameters directly rather than through module swaps.
+class ManualGradTD3Loss(TD3LossQ1Actor):
+    """TorchRL's ``TD3Loss`` (through :class:`TD3LossQ1Actor`) whose losses and gradients are
+    written by hand: ``value_loss_backward`` and ``actor_loss_backward`` compute each loss and set
+    its gradients by the chain rule, without autograd, and :class:`TD3` calls them.
 
     ``TD3Loss.value_loss`` evaluates the two critics (and their targets) with ``vmap`` over a
     TensorDict-expanded batch and the target actor through a parameter swap into the module;
@@ -112,15 +113,16 @@ class FusedTD3Loss(TD3LossQ1Actor):
     ``r + gamma * (1 - terminated) * Q'``, squared error summed over the critics and averaged
     over the batch (tests/test_td3.py compares losses, gradients and targets after several
     updates with stock ``TD3Loss``). ``actor_loss`` is :class:`TD3LossQ1Actor`'s, written the
-    same way. Networks of another shape, other value estimators, losses or reductions, or
-    prioritised weights fall back to the parent's code.
+    same way. Networks of another shape or activation, other value estimators, losses or
+    reductions, prioritised weights or loss masks, and a subclass's own ``value_loss`` or
+    ``actor_loss``, go to the parent's code and autograd.
     """
 
-    def _fused_layout(self):
+    def _manual_layout(self):
         """The networks as lists of ``(weight, bias, activation)`` tensors, built once (TorchRL
         keeps the parameters in place for the life of the loss, as :class:`ForeachSoftUpdate`
         relies on too), or False when the networks are not the plain MLPs this path handles."""
-        layout = self.__dict__.get("_fused")
+        layout = self.__dict__.get("_manual")
         if layout is None:
             layout = False
             actor, critic = self.actor_network, self.qvalue_network
@@ -137,23 +139,23 @@ class FusedTD3Loss(TD3LossQ1Actor):
                 actor_mlp = _plain_mlp(actor.module[0].module)
                 critic_mlp = _plain_mlp(getattr(critic, "module", None))
                 if actor_mlp and critic_mlp and list(critic.in_keys) == ["observation", "action"] and len(critic.out_keys) == 1:
-                    layout = _FusedLayout(self, actor_mlp, critic_mlp)
-            self.__dict__["_fused"] = layout
+                    layout = _ManualGradLayout(self, actor_mlp, critic_mlp)
+            self.__dict__["_manual"] = layout
         return layout
 
-    def _fused_layout_for(self, tensordict):
-        """:meth:`_fused_layout`, or False for a batch with prioritised weights or loss masks
+    def _manual_layout_for(self, tensordict):
+        """:meth:`_manual_layout`, or False for a batch with prioritised weights or loss masks
         (TorchRL's code and autograd handle those)."""
-        return False if reweights_or_masks(self, tensordict) else self._fused_layout()
+        return False if reweights_or_masks(self, tensordict) else self._manual_layout()
 
     def _inherits(self, name: str) -> bool:
         """Whether ``name`` (``value_loss``, ``actor_loss``) is this class's own: a subclass that
         overrides it gets its own loss, through autograd, not the hand-written gradient of this one."""
-        return getattr(type(self), name) is getattr(FusedTD3Loss, name)
+        return getattr(type(self), name) is getattr(ManualGradTD3Loss, name)
 
     def value_loss(self, tensordict) -> tuple[torch.Tensor, dict]:
         """TD3Loss's critic loss and its metadata tensors (TD3.update uses :meth:`value_loss_backward`)."""
-        layout = self._fused_layout_for(tensordict)
+        layout = self._manual_layout_for(tensordict)
         if not layout:
             return super().value_loss(tensordict)
         action = tensordict.get(self.tensor_keys.action)
@@ -170,7 +172,7 @@ class FusedTD3Loss(TD3LossQ1Actor):
     def value_loss_backward(self, tensordict) -> torch.Tensor | None:
         """``value_loss`` and its backward in one pass, without autograd: sets the critics'
         ``.grad`` (as ``zero_grad(set_to_none=True)`` then ``backward()`` would) and returns the
-        loss. None where the fused path does not apply (the caller then uses ``value_loss``).
+        loss. None where the hand-written path does not apply (the caller then uses ``value_loss``).
 
         Written by hand because autograd's graph bookkeeping around these small matmuls is a
         share of a TD3 update of the paper's networks (docs/performance.md, "td3_loss"); the gradient is
@@ -179,7 +181,7 @@ class FusedTD3Loss(TD3LossQ1Actor):
         ``g = dL/dQ = 2 (Q - y) / B``. tests/test_td3.py compares loss and gradients with
         stock ``TD3Loss.value_loss`` + ``backward``.
         """
-        layout = self._fused_layout_for(tensordict) if self._inherits("value_loss") else False
+        layout = self._manual_layout_for(tensordict) if self._inherits("value_loss") else False
         if not layout:
             return None
         action = tensordict.get(self.tensor_keys.action)
@@ -209,7 +211,7 @@ class FusedTD3Loss(TD3LossQ1Actor):
     def actor_loss(self, tensordict) -> tuple[torch.Tensor, dict]:
         """``-Q_1(s, pi(s)).mean()`` as :class:`TD3LossQ1Actor`, with the actor and the first
         critic's (detached) parameters used directly instead of swapped into the modules."""
-        layout = self._fused_layout_for(tensordict)
+        layout = self._manual_layout_for(tensordict)
         if not layout:
             return super().actor_loss(tensordict)
         observation = tensordict.get("observation")
@@ -219,12 +221,12 @@ class FusedTD3Loss(TD3LossQ1Actor):
     def actor_loss_backward(self, tensordict) -> torch.Tensor | None:
         """``actor_loss`` and its backward in one pass, without autograd, as
         :meth:`value_loss_backward`: sets the actor's ``.grad`` and returns the loss (None where
-        the fused path does not apply). From ``dL/dQ_1 = -1/B`` the gradient runs back through the
+        the hand-written path does not apply). From ``dL/dQ_1 = -1/B`` the gradient runs back through the
         first critic (its weights only carry it: they are not trained by this loss) to the action,
         through ``TanhModule``'s squashing, then through the actor's layers.
         tests/test_td3.py compares loss and gradients with stock ``TD3Loss.actor_loss``.
         """
-        layout = self._fused_layout_for(tensordict) if self._inherits("actor_loss") else False
+        layout = self._manual_layout_for(tensordict) if self._inherits("actor_loss") else False
         if not layout:
             return None
         tanh_module = self.actor_network.module[1]
@@ -293,8 +295,8 @@ def _backward(layers, inputs: list, grad: torch.Tensor, parameters: bool = True)
     return grad
 
 
-class _FusedLayout:
-    """The tensors :class:`FusedTD3Loss` computes with, looked up once instead of ~30 TensorDict
+class _ManualGradLayout:
+    """The tensors :class:`ManualGradTD3Loss` computes with, looked up once instead of ~30 TensorDict
     lookups per update: ``(weight, bias, activation)`` per layer of the online and target actor
     and twin critics, the first critic's detached weights for the actor loss, and
     the action bounds of both actors."""
@@ -348,7 +350,7 @@ class TD3:
         exploration_noise: std of the Gaussian noise added to actions when acting (paper: 0.1).
         loss_function: critic regression loss (``"l2"`` as in Fujimoto's TD3).
         loss_class: the ``TD3Loss`` class (or a subclass) to build. Stock ``TD3Loss`` (the
-            reference, trained by autograd) or :class:`FusedTD3Loss`, whose
+            reference, trained by autograd) or :class:`ManualGradTD3Loss`, whose
             ``value_loss_backward``/``actor_loss_backward`` give the same losses and gradients
             without autograd; :meth:`update` uses those methods where the loss has them.
         target_update_class: ``SoftUpdate`` (the reference) or :class:`ForeachSoftUpdate`.

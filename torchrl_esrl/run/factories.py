@@ -30,13 +30,13 @@ from torchrl_esrl.algorithm.es_phase import ESPhase
 from torchrl_esrl.modules.warmup import RandomWarmup
 from torchrl_esrl.algorithm.overwrite import OverwriteRule
 from torchrl_esrl.collectors.td3_collector import GymTD3Collector, make_td3_collector
-from torchrl_esrl.objectives.td3 import TD3, ForeachSoftUpdate, FusedTD3Loss
+from torchrl_esrl.objectives.td3 import TD3, ForeachSoftUpdate, ManualGradTD3Loss
 from torchrl_esrl.data.threshold import Threshold
 
 IMPLEMENTATIONS = ("fast", "reference")
 # Each fast piece, and the reference it replaces (docs/performance.md has the table):
 FAST_PIECES = {
-    "td3_loss": "FusedTD3Loss (gradients without autograd) <- TorchRL TD3Loss + autograd",
+    "td3_loss": "ManualGradTD3Loss (gradients without autograd) <- TorchRL TD3Loss + autograd",
     "soft_update": "ForeachSoftUpdate <- TorchRL SoftUpdate",
     "adam": "fused Adam, one kernel call <- torch.optim.Adam",
     "td3_collector": "GymTD3Collector <- TorchRL Collector over GymEnv",
@@ -96,7 +96,7 @@ def make_td3(cfg: DictConfig, actor, critic, action_spec, pieces: Collection[str
         policy_delay=c.policy_delay,
         exploration_noise=c.exploration_noise,
         loss_function=c.loss_function,
-        loss_class=FusedTD3Loss if "td3_loss" in fast else TD3Loss,  # it hands over to TD3Loss's autograd where it cannot compute exactly
+        loss_class=ManualGradTD3Loss if "td3_loss" in fast else TD3Loss,  # it hands over to TD3Loss's autograd where it cannot compute exactly
         target_update_class=ForeachSoftUpdate if "soft_update" in fast else SoftUpdate,
         optimizer_impl="fused" if "adam" in fast else "default",
         num_threads=c.num_threads,
@@ -106,7 +106,7 @@ def make_td3(cfg: DictConfig, actor, critic, action_spec, pieces: Collection[str
     return td3
 
 
-def make_td3_batches(cfg: DictConfig, env, td3: TD3, pieces: Collection[str] | None = None):
+def make_frame_batches(cfg: DictConfig, env, td3: TD3, pieces: Collection[str] | None = None):
     """The TD3 collector and an iterator over it that lives across iterations:
     :class:`~torchrl_esrl.collectors.td3_collector.GymTD3Collector` where it steps exactly what
     TorchRL's ``Collector`` would (make_env's env, make_actor's actor), else the ``Collector``."""
