@@ -15,15 +15,16 @@ paper's values) and scaled by the paper's counts (Algorithm 1, Section 4.3):
 Per iteration: 100k frames x (env step + update) + 50 generations + 2 evaluations; x 20.
 
 Each part is timed in rounds (medians). ``--compare`` also times, in the same process and
-taking turns with the tuned configuration within every round, the reference configuration:
-``td3.fast=false`` (stock ``TD3Loss`` + ``SoftUpdate`` + default Adam, TorchRL ``Collector``),
-``td3.num_threads=null`` (the process's threads), buffer writes through TorchRL's ``extend``
-(``direct_writes=False``), the whole ES population in one batch stepped on all threads, with the
-forward over the flat rows on one thread (``workers=1, chunks_per_worker=1``); each part's ratio
-is reported. ``--plain`` also times, interleaved with the loop's updates and sampling the same
-buffer, the plain PyTorch TD3 update of ``benchmarks.td3_update`` on 1 and on 2 threads: the
-update goal (>= 1.2x the best plain one) measured inside the loop.
-Usage: ``python -m benchmarks.iteration [--quick] [--compare] [--plain] [--env halfcheetah] [--out PATH]``.
+taking turns with the fast configuration within every round, ``implementation=reference`` (stock
+TorchRL end to end, ``torchrl_esrl/run/factories.py``); each part's ratio is reported.
+``--ablation`` switches each fast piece (``factories.FAST_PIECES``) back to its reference alone,
+the rest fast, and times the parts that piece touches in the same interleaved rounds as the fast
+configuration; each piece's saving is reported as its share of the fast paper-size iteration
+(``ablation`` in the JSON record; docs/performance.md's table). ``--plain`` also times,
+interleaved with the loop's updates and sampling the same buffer, the plain PyTorch TD3 update of
+``benchmarks.td3_update`` on 1 and on 2 threads: the update goal (>= 1.2x the best plain one)
+measured inside the loop.
+Usage: ``python -m benchmarks.iteration [--quick] [--compare] [--ablation] [--plain] [--env halfcheetah] [--capacity N] [--out PATH]``.
 """
 from __future__ import annotations
 
@@ -40,47 +41,60 @@ from omegaconf import OmegaConf
 
 from torchrl_esrl.envs import quiet_logs
 from torchrl_esrl.run.factories import (
-    make_actor_critic, make_es, make_es_collector, make_multibuffer, make_td3, make_td3_batches, make_threshold,
+    FAST_PIECES, make_actor_critic, make_es, make_es_collector, make_multibuffer, make_td3, make_frame_batches, make_threshold,
     make_train_env,
 )
-from torchrl_esrl.collectors.mujoco_batch import MujocoBatchBackend
 from torchrl_esrl.modules.networks import flat_parameters
 from torchrl_esrl.run.determinism import seed_everything
 from torchrl_esrl.algorithm.td3_phase import td3_phase
 from torchrl_esrl.threads import torch_threads
 
 ROOT = Path(__file__).resolve().parents[1]
+PARTS = ("td3_env_steps", "es_evaluation", "es_buffer_writes", "es_tell", "td3_updates", "evaluations")
+# The parts of an iteration each fast piece takes part in: what its ablation times.
+PIECE_PARTS = {
+    "td3_loss": ("td3_updates",),
+    "soft_update": ("td3_updates",),
+    "adam": ("td3_updates",),
+    "buffer_reads": ("td3_updates",),
+    "td3_collector": ("td3_env_steps",),
+    "buffer_writes": ("td3_env_steps", "es_buffer_writes"),
+    "es_forward": ("es_evaluation", "evaluations"),
+    "es_physics": ("es_evaluation", "evaluations"),
+}
+assert set(PIECE_PARTS) == set(FAST_PIECES), "every fast piece has its parts"
 
 
-def paper_config(env: str = "halfcheetah", capacity: int | None = None):
+def paper_config(env: str = "halfcheetah", capacity: int | None = None, max_episode_steps: int | None = None):
+    """conf/config.yaml's paper values; ``capacity`` (and K with it, if smaller) and
+    ``max_episode_steps`` shrink a smoke run."""
     cfg = OmegaConf.load(ROOT / "conf/config.yaml")
     cfg.env = OmegaConf.load(ROOT / f"conf/env/{env}.yaml")
     cfg.logger.progress = False
     if capacity:
         cfg.buffer.capacity = capacity
+        cfg.buffer.min_size = min(cfg.buffer.min_size, capacity)
+    if max_episode_steps:
+        cfg.env.max_episode_steps = max_episode_steps
     return cfg
 
 
 class Setup:
-    """One configuration's components, built with the recipe's factories."""
+    """One configuration's components, built with the recipe's factories from ``pieces`` (the
+    fast pieces it uses); ``parts`` are the parts of an iteration it is timed on."""
 
-    def __init__(self, env: str, capacity: int | None, reference: bool, td3_threads: int | None = None):
-        cfg = paper_config(env, capacity)
-        if reference:
-            cfg.td3.fast, cfg.td3.num_threads = False, None
-        elif td3_threads is not None:  # the tuned configuration with another thread count for the TD3 phase
+    def __init__(self, env: str, capacity: int | None, pieces, td3_threads: int | None = None, parts=PARTS, name: str = "fast", max_episode_steps: int | None = None):
+        cfg = paper_config(env, capacity, max_episode_steps)
+        if td3_threads is not None:  # another thread count for the TD3 phase
             cfg.td3.num_threads = td3_threads
         seed_everything(0)
-        self.cfg, self.reference = cfg, reference
+        self.cfg, self.pieces, self.parts, self.name = cfg, frozenset(pieces), tuple(parts), name
         train_env = make_train_env(cfg)
         self.actor, critic = make_actor_critic(cfg, train_env)
-        self.td3 = make_td3(cfg, self.actor, critic, train_env.action_spec)
-        self.collector, self.batches = make_td3_batches(cfg, train_env, self.td3)
-        self.buffer = make_multibuffer(cfg)
-        self.buffer.direct_writes = not reference  # the reference writes through TorchRL's extend
-        self.es, self.es_collector, self.threshold = make_es(cfg, self.actor), make_es_collector(cfg, self.actor), make_threshold(cfg)
-        if reference and isinstance(self.es_collector.backend, MujocoBatchBackend):  # the whole population in lock-step
-            self.es_collector.backend = MujocoBatchBackend(cfg.env.id, self.es_collector.population_actor, cfg.env.max_episode_steps, workers=1, chunks_per_worker=1)
+        self.td3 = make_td3(cfg, self.actor, critic, train_env.action_spec, pieces=self.pieces)
+        self.collector, self.batches = make_frame_batches(cfg, train_env, self.td3, pieces=self.pieces)
+        self.buffer = make_multibuffer(cfg, pieces=self.pieces)
+        self.es, self.es_collector, self.threshold = make_es(cfg, self.actor), make_es_collector(cfg, self.actor, pieces=self.pieces), make_threshold(cfg)
         self.obs_dim, self.act_dim = train_env.observation_spec["observation"].shape[-1], train_env.action_spec.shape[-1]
         self.seconds: dict[str, list[float]] = {}  # part -> seconds per unit, one entry per round
         self.cpu_seconds: dict[str, list[float]] = {}  # the same in process CPU time (all threads)
@@ -88,6 +102,9 @@ class Setup:
         self.env_steps_per_generation = 0
         self.plain_seconds: dict[int, list[float]] = {}  # torch threads -> plain TD3 seconds per update, per round
         self.plain_td3: dict = {}  # torch threads -> benchmarks.td3_update.PlainTD3, built on first use
+
+    def times(self, *parts: str) -> bool:
+        return any(part in self.parts for part in parts)
 
     def record(self, part: str, seconds: float, units: int) -> None:
         """Wall seconds of ``part`` per unit, and the process CPU time since the part's
@@ -111,7 +128,7 @@ class Setup:
         population = self.es.ask()
         self.start_cpu()
         start = time.perf_counter()
-        generation = self.es_collector.evaluate(population, mirrored=None if self.reference else self.es.mirrored())
+        generation = self.es_collector.evaluate(population, mirrored=self.es.mirrored())  # the ES phase's call
         self.record("es_evaluation", time.perf_counter() - start, 1)
         self.env_steps_per_generation = generation.frames
         self.start_cpu()
@@ -183,51 +200,86 @@ class Setup:
             part["cpu_s_per_iteration"] = part["cpu_s_per"] * part["count_per_iteration"]
             iteration_s += part["s_per_iteration"]
             parts[name] = part
-        parts["es_evaluation"]["env_steps_per_generation"] = self.env_steps_per_generation
+        if "es_evaluation" in parts:
+            parts["es_evaluation"]["env_steps_per_generation"] = self.env_steps_per_generation
         for part in parts.values():
-            part["share"] = part["s_per_iteration"] / iteration_s
+            part["share"] = part["s_per_iteration"] / iteration_s if iteration_s else 0.0
         run_s = iteration_s * cfg.iterations
         cpu_iteration_s = sum(p["cpu_s_per_iteration"] for p in parts.values())
         return {"cpu_iteration_s": cpu_iteration_s, "cpu_run_h": cpu_iteration_s * cfg.iterations / 3600,"env": cfg.env.id, "iterations": cfg.iterations, "parts": parts, "iteration_s": iteration_s, "run_s": run_s,
                 "run_h": run_s / 3600, "goal": "20 iterations <= 4 h", "met": run_s <= 4 * 3600,
-                "config": {"td3.fast": cfg.td3.fast, "td3.num_threads": cfg.td3.num_threads, "direct_writes": self.buffer.direct_writes, "es_mirrored": not self.reference,
-                           "es_workers": len(getattr(self.es_collector.backend, "workers", []))}}
+                "config": {"fast_pieces": sorted(self.pieces), "td3.num_threads": cfg.td3.num_threads, "es_backend": self.es_collector.backend.name,
+                           "es_population": type(self.es_collector.population_actor).__name__, "es_workers": len(getattr(self.es_collector.backend, "workers", []))}}
 
 
 def run(env: str = "halfcheetah", frames: int = 2000, generations: int = 2, capacity: int | None = None,
-        compare: bool = False, rounds: int = 3, td3_threads: int | None = None, plain: bool = False) -> dict:
-    """Each part measured in ``rounds`` rounds (medians); with ``compare``, the reference
-    configuration and the tuned one take turns within every round; with ``plain``, so does the
-    plain PyTorch TD3 update on 1 and on 2 threads, sampling the tuned setup's buffer."""
+        compare: bool = False, rounds: int = 3, td3_threads: int | None = None, plain: bool = False, ablation: bool = False,
+        max_episode_steps: int | None = None) -> dict:
+    """Each part measured in ``rounds`` rounds (medians). The fast configuration and, with
+    ``compare``, the reference, with ``ablation``, each fast piece switched back alone (timed on
+    the parts it touches), take turns within every round; with ``plain``, so does the plain
+    PyTorch TD3 update on 1 and on 2 threads, sampling the fast setup's buffer."""
     quiet_logs()
-    setups = ([Setup(env, capacity, reference=True)] if compare else []) + [Setup(env, capacity, reference=False, td3_threads=td3_threads)]
+    fast = Setup(env, capacity, FAST_PIECES, td3_threads, max_episode_steps=max_episode_steps)
+    setups = ([Setup(env, capacity, (), td3_threads, name="reference", max_episode_steps=max_episode_steps)] if compare else []) + [fast]
+    ablated = {
+        piece: Setup(env, capacity, set(FAST_PIECES) - {piece}, td3_threads, PIECE_PARTS[piece], name=f"without {piece}", max_episode_steps=max_episode_steps)
+        for piece in (FAST_PIECES if ablation else ())
+    }
+    setups += list(ablated.values())
     for _ in range(rounds):
         for s in setups:
-            s.env_steps(max(1, frames // rounds))
+            if s.times("td3_env_steps"):
+                s.env_steps(max(1, frames // rounds))
     for _ in range(generations):
         for s in setups:
-            s.generation()
-    for s in setups:
+            if s.times("es_evaluation", "es_buffer_writes", "es_tell"):
+                s.generation()
+    updating = [s for s in setups if s.times("td3_updates")]
+    for s in updating:
         s.fill_to_ready()
     for _ in range(rounds):
-        for s in setups:
+        for s in updating:
             s.updates(max(1, frames // rounds))
         for threads in (1, 2) if plain else ():
-            setups[-1].plain_updates(max(1, frames // rounds), threads)
+            fast.plain_updates(max(1, frames // rounds), threads)
     for s in setups:
-        s.evaluations()
+        if s.times("evaluations"):
+            s.evaluations()
     for s in setups:
         s.collector.shutdown()
-    report = setups[-1].report()
+    report = fast.report()
     report["measured"] = {"frames": frames, "updates": frames, "generations": generations, "rounds": rounds}
     if compare:
         report["reference"] = setups[0].report()
+    if ablation:
+        report["ablation"] = ablation_report(fast, ablated)
     if plain:
-        seconds = {threads: statistics.median(rounds_s) for threads, rounds_s in setups[-1].plain_seconds.items()}
+        seconds = {threads: statistics.median(rounds_s) for threads, rounds_s in fast.plain_seconds.items()}
         ratio = min(seconds.values()) / report["parts"]["td3_updates"]["s_per"]
-        report["plain_td3"] = {"s_per_update": seconds, "rounds_s_per_update": setups[-1].plain_seconds,
+        report["plain_td3"] = {"s_per_update": seconds, "rounds_s_per_update": fast.plain_seconds,
                                "tuned_vs_best_plain": ratio, "goal": "TD3 updates in the loop >= 1.2x the best plain PyTorch update", "met": ratio >= 1.2}
     return report
+
+
+def ablation_report(fast: Setup, ablated: dict[str, Setup]) -> dict:
+    """Per fast piece: the iteration with that piece switched back to its reference (its parts
+    timed, the other parts the fast configuration's), the seconds it saves, and their share of
+    the fast iteration."""
+    fast_report = fast.report()
+    fast_parts, fast_iteration = fast_report["parts"], fast_report["iteration_s"]
+    out = {}
+    for piece, setup in ablated.items():
+        parts = setup.report()["parts"]
+        iteration_s = fast_iteration + sum(parts[p]["s_per_iteration"] - fast_parts[p]["s_per_iteration"] for p in setup.parts)
+        saved = iteration_s - fast_iteration
+        out[piece] = {
+            "reference": FAST_PIECES[piece], "parts_timed": list(setup.parts),
+            "parts": {p: {"fast_s_per_iteration": fast_parts[p]["s_per_iteration"], "reference_s_per_iteration": parts[p]["s_per_iteration"],
+                          "fast_rounds_s_per": fast_parts[p]["rounds_s_per"], "reference_rounds_s_per": parts[p]["rounds_s_per"]} for p in setup.parts},
+            "iteration_s": iteration_s, "saved_s_per_iteration": saved, "share_saved": saved / fast_iteration if fast_iteration else 0.0,
+        }
+    return out
 
 
 def main(argv=None) -> dict:
@@ -236,14 +288,18 @@ def main(argv=None) -> dict:
     parser.add_argument("--env", default="halfcheetah")
     parser.add_argument("--frames", type=int, default=None)
     parser.add_argument("--generations", type=int, default=None)
-    parser.add_argument("--compare", action="store_true", help="also time the reference configuration, interleaved, same process")
+    parser.add_argument("--compare", action="store_true", help="also time implementation=reference, interleaved, same process")
+    parser.add_argument("--ablation", action="store_true", help="also time each fast piece switched back to its reference alone, interleaved")
+    parser.add_argument("--capacity", type=int, default=None, help="items per buffer (default: conf/config.yaml's; smoke runs only)")
+    parser.add_argument("--max-episode-steps", type=int, default=None, help="ES episode length (default: the task's; smoke runs only)")
     parser.add_argument("--rounds", type=int, default=3, help="rounds per part (medians reported)")
     parser.add_argument("--td3-threads", type=int, default=None, help="td3.num_threads of the tuned configuration (default: conf/config.yaml's)")
     parser.add_argument("--plain", action="store_true", help="also time the plain PyTorch TD3 update (1 and 2 threads), interleaved with the loop's updates")
-    parser.add_argument("--out", default="benchmarks/results/iteration.json")
+    parser.add_argument("--out", default=None, help="JSON record (default: benchmarks/results/iteration.json, iteration_ablation.json with --ablation)")
     args = parser.parse_args(argv)
     frames, generations = args.frames or (500 if args.quick else 2000), args.generations or (1 if args.quick else 2)
-    report = run(args.env, frames, generations, compare=args.compare, rounds=args.rounds, td3_threads=args.td3_threads, plain=args.plain)
+    report = run(args.env, frames, generations, capacity=args.capacity, compare=args.compare, rounds=args.rounds, td3_threads=args.td3_threads,
+                 plain=args.plain, ablation=args.ablation, max_episode_steps=args.max_episode_steps)
     reference = report.get("reference")
     for name, p in report["parts"].items():
         ratio = f"  {reference['parts'][name]['s_per'] / p['s_per']:5.2f}x reference" if reference else ""
@@ -256,7 +312,9 @@ def main(argv=None) -> dict:
         plain = report["plain_td3"]
         print("plain PyTorch TD3 update: " + ", ".join(f"{t} thread(s) {v * 1e3:.2f} ms" for t, v in plain["s_per_update"].items())
               + f"; the loop's updates {plain['tuned_vs_best_plain']:.2f}x the best (goal >= 1.2x: {'met' if plain['met'] else 'not met'})")
-    save_report(report, args.out)
+    for piece, a in report.get("ablation", {}).items():
+        print(f"without {piece:14s} {a['iteration_s']:8.1f} s/iteration: saves {a['saved_s_per_iteration']:7.1f} s ({a['share_saved']:6.1%} of the fast iteration); reference: {a['reference']}")
+    save_report(report, args.out or ("benchmarks/results/iteration_ablation.json" if args.ablation else "benchmarks/results/iteration.json"))
     return report
 
 

@@ -2,7 +2,7 @@
 
 Methods, interleaved in one run (HalfCheetah-v5, the paper's actor, exploration noise 0.1):
 
-  collector        TorchRL ``GymEnv`` + ``Collector`` (the reference path, ``td3.fast=false``)
+  collector        TorchRL ``GymEnv`` + ``Collector`` (the reference path, ``implementation=reference``)
   gym_collector    :class:`~torchrl_esrl.collectors.td3_collector.GymTD3Collector` (the default)
   collector_write  the reference path plus the ``noisy`` MultiBuffer write of every frame
                    through TorchRL's ``extend`` (``direct_writes=False``)
@@ -20,7 +20,7 @@ from benchmarks.common import interleaved, save_report  # sets OMP_WAIT_POLICY, 
 import torch
 
 from benchmarks.iteration import paper_config
-from torchrl_esrl.collectors.td3_collector import make_td3_collector
+from torchrl_esrl.collectors.td3_collector import GymTD3Collector, make_td3_collector
 from torchrl_esrl.envs import quiet_logs
 from torchrl_esrl.run.determinism import seed_everything
 from torchrl_esrl.run.factories import make_actor_critic, make_multibuffer, make_td3, make_train_env
@@ -37,7 +37,7 @@ def run(repeats: int = 7, calls: int = 200, capacity: int = 1_000_000) -> dict:
         env = make_train_env(cfg)
         actor, critic = make_actor_critic(cfg, env)
         td3 = make_td3(cfg, actor, critic, env.action_spec)
-        frames = iter(make_td3_collector(env, td3, 1, fast=fast))
+        frames = iter(GymTD3Collector(env, td3, 1) if fast else make_td3_collector(env, td3, 1))
         buffer = make_multibuffer(cfg)
         buffer.direct_writes = fast  # the reference writes through TorchRL's extend
         methods[name] = lambda frames=frames: next(frames)

@@ -9,9 +9,9 @@ method. Methods, interleaved in one run:
                 default Adam, per-parameter soft update), 1 torch thread: the baseline
   plain_2threads  the same on 2 threads
   plain_fused   the same with fused Adam (reference: what the baseline gets from the same trick)
-  torchrl_stock TD3(fast=False): TorchRL TD3Loss + SoftUpdate + default Adam
-  torchrl_fast  TD3() default: FusedTD3Loss (stacked twin critics, Q1-only actor loss) +
-                ForeachSoftUpdate + fused Adam, 1 thread
+  torchrl_stock TD3() (the reference): TorchRL TD3Loss + SoftUpdate + default Adam
+  torchrl_fast  TD3 with make_td3's fast pieces: ManualGradTD3Loss (stacked twin critics, Q1-only
+                actor loss, gradients without autograd) + ForeachSoftUpdate + fused Adam, 1 thread
   torchrl_fast_2threads  the same on 2 threads (the TD3 phase's ``td3.num_threads: 2``, as the
                 recipes run it)
 
@@ -42,7 +42,9 @@ from torchrl.data import Bounded
 
 from torchrl_esrl.data.multibuffer import MultiBuffer
 from torchrl_esrl.modules.networks import make_actor, make_critic
-from torchrl_esrl.objectives.td3 import TD3
+from torchrl_esrl.objectives.td3 import TD3, ForeachSoftUpdate, ManualGradTD3Loss
+
+FAST_TD3 = {"loss_class": ManualGradTD3Loss, "target_update_class": ForeachSoftUpdate, "optimizer_impl": "fused"}  # make_td3's fast pieces
 
 
 def _mlp(inputs: int, outputs: int, activation, squash: bool = False) -> nn.Sequential:
@@ -89,7 +91,7 @@ class PlainTD3:
 
 def run(capacity: int = 1_000_000, repeats: int = 7, calls: int = 50, env_id: str = "HalfCheetah-v5") -> dict:
     obs_dim, act_dim = SHAPES[env_id]
-    buffer = MultiBuffer(ratio=(0.5, 0.2, 0.3), capacity=capacity, batch_size=256)
+    buffer = MultiBuffer(ratio=(0.5, 0.2, 0.3), capacity=capacity, batch_size=256, direct_reads=True)  # as make_multibuffer's fast pieces
     for name in buffer.names:
         fill(buffer, capacity, obs_dim, act_dim, name=name)
     spec = Bounded(-torch.ones(act_dim), torch.ones(act_dim), shape=(act_dim,))
@@ -115,9 +117,9 @@ def run(capacity: int = 1_000_000, repeats: int = 7, calls: int = 50, env_id: st
         "plain": threads(1, plain()),
         "plain_2threads": threads(2, plain()),
         "plain_fused": threads(1, plain(fused=True)),
-        "torchrl_stock": threads(1, torchrl(fast=False)),
-        "torchrl_fast": threads(1, torchrl()),
-        "torchrl_fast_2threads": threads(2, torchrl()),
+        "torchrl_stock": threads(1, torchrl()),
+        "torchrl_fast": threads(1, torchrl(**FAST_TD3)),
+        "torchrl_fast_2threads": threads(2, torchrl(**FAST_TD3)),
     }
     timings = interleaved(methods, calls=calls, repeats=repeats, warmup=10)
     base = timings["plain"]["s_per_call"]

@@ -19,9 +19,8 @@ from __future__ import annotations
 import torch
 from omegaconf import DictConfig
 
-from torchrl_esrl.data.multibuffer import MultiBuffer
 from torchrl_esrl.es.cem import cem_rl_gradient_steps
-from torchrl_esrl.run.factories import make_actor_critic, make_cem, make_es_collector, make_td3, make_train_env
+from torchrl_esrl.run.factories import make_actor_critic, make_cem, make_multibuffer, make_es_collector, make_td3, make_train_env
 from torchrl_esrl.run.lifecycle import Run, recipe_main
 
 
@@ -29,7 +28,7 @@ def train(cfg: DictConfig, run: Run) -> dict:
     env = make_train_env(cfg)
     actor, critic = make_actor_critic(cfg, env)
     td3 = make_td3(cfg, actor, critic, env.action_spec)
-    buffer = MultiBuffer(ratio=(0, 0, 1), capacity=cfg.buffer.capacity, batch_size=cfg.buffer.batch_size, min_size=cfg.buffer.min_size, device=cfg.device)
+    buffer = make_multibuffer(cfg, one_buffer=True)
     cem = make_cem(cfg, actor)
     rl_members = int(cfg.cem.population_size * cfg.cem.rl_fraction)
     population_collector = make_es_collector(cfg, actor)  # one deterministic episode per member

@@ -26,7 +26,7 @@ from torchrl_esrl.run.factories import (
     make_multibuffer,
     make_overwrite_rule,
     make_td3,
-    make_td3_batches,
+    make_frame_batches,
     make_threshold,
     make_train_env,
 )
@@ -40,7 +40,7 @@ def train(cfg: DictConfig, run: Run) -> dict:
     env = make_train_env(cfg)
     actor, critic = make_actor_critic(cfg, env)
     td3 = make_td3(cfg, actor, critic, env.action_spec)
-    collector, td3_batches = make_td3_batches(cfg, env, td3)
+    collector, frame_batches = make_frame_batches(cfg, env, td3)
     es, es_collector = make_es(cfg, actor), make_es_collector(cfg, actor)
     es_phase = make_es_phase(cfg, es, es_collector, make_multibuffer(cfg), make_threshold(cfg), on_generation=run.on_es_generation)
     buffer, threshold = es_phase.buffer, es_phase.threshold  # lock-guarded when ES runs in the background
@@ -52,7 +52,7 @@ def train(cfg: DictConfig, run: Run) -> dict:
         # TD3: M frames of noisy actions into the noisy buffer, learning once all buffers hold K;
         # TD3 episodes raise the best return too.
         td3_stats = td3_phase(
-            cfg.td3.frames_per_iteration, td3_batches, td3, buffer,
+            cfg.td3.frames_per_iteration, frame_batches, td3, buffer,
             on_episode=lambda r: threshold.observe(check_finite("TD3 episode return", r)),
             updates_per_frame=cfg.td3.updates_per_frame,
             on_batch=run.on_td3_batch if es_phase.inline else None,  # async: ES state is in flux mid-phase

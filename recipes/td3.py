@@ -12,9 +12,8 @@ from omegaconf import DictConfig
 
 from torchrl_esrl.algorithm.td3_phase import td3_phase
 from torchrl_esrl.collectors.td3_collector import TD3EnvState
-from torchrl_esrl.data.multibuffer import MultiBuffer
 from torchrl_esrl.modules.networks import flat_parameters
-from torchrl_esrl.run.factories import make_actor_critic, make_td3, make_td3_batches, make_train_env
+from torchrl_esrl.run.factories import make_actor_critic, make_multibuffer, make_td3, make_frame_batches, make_train_env
 from torchrl_esrl.run.lifecycle import Run, recipe_main
 
 
@@ -22,14 +21,14 @@ def train(cfg: DictConfig, run: Run) -> dict:
     env = make_train_env(cfg)
     actor, critic = make_actor_critic(cfg, env)
     td3 = make_td3(cfg, actor, critic, env.action_spec)
-    collector, td3_batches = make_td3_batches(cfg, env, td3)
+    collector, frame_batches = make_frame_batches(cfg, env, td3)
     # One buffer: the MultiBuffer with all of the batch from "noisy" is a plain TD3 replay buffer.
-    buffer = MultiBuffer(ratio=(0, 0, 1), capacity=cfg.buffer.capacity, batch_size=cfg.buffer.batch_size, min_size=cfg.buffer.min_size, device=cfg.device)
+    buffer = make_multibuffer(cfg, one_buffer=True)
     run.resume(actor, td3=td3, exploration=td3.exploration_policy, td3_env=TD3EnvState(collector), buffer=buffer)
     episodes = run.progress.counters.setdefault("td3_train_episodes", 0)
 
     for iteration in run.iterations("TD3"):
-        stats = td3_phase(cfg.td3.frames_per_iteration, td3_batches, td3, buffer, updates_per_frame=cfg.td3.updates_per_frame, on_batch=run.on_td3_batch, progress=run.progress.td3_phase)
+        stats = td3_phase(cfg.td3.frames_per_iteration, frame_batches, td3, buffer, updates_per_frame=cfg.td3.updates_per_frame, on_batch=run.on_td3_batch, progress=run.progress.td3_phase)
         episodes = run.progress.counters["td3_train_episodes"] = episodes + stats["episodes"]
         run.log(
             iteration,

@@ -11,8 +11,10 @@ from torchrl_esrl.es.openes import OpenES
 from torchrl_esrl.collectors.es_collector import ESCollector
 from torchrl_esrl.modules.networks import flat_parameters, make_actor, make_critic
 from torchrl_esrl.algorithm.td3_phase import td3_phase
-from torchrl_esrl.collectors.td3_collector import finished_episode_returns, make_td3_collector
-from torchrl_esrl.objectives.td3 import TD3
+from torchrl_esrl.collectors.td3_collector import GymTD3Collector, finished_episode_returns, make_td3_collector
+from torchrl_esrl.objectives.td3 import TD3, ForeachSoftUpdate, ManualGradTD3Loss
+
+FAST = {"loss_class": ManualGradTD3Loss, "target_update_class": ForeachSoftUpdate, "optimizer_impl": "fused"}  # make_td3's fast pieces
 from torchrl_esrl.data.threshold import Threshold
 
 
@@ -129,10 +131,10 @@ def test_fast_td3_matches_stock_torchrl_td3():
     spec = Bounded(-torch.ones(6), torch.ones(6), shape=(6,))
     actor, critic = make_actor(17, spec), make_critic(17, 6)
     torch.manual_seed(1)  # TD3Loss draws the second critic's initial weights
-    stock = TD3(copy.deepcopy(actor), copy.deepcopy(critic), spec, fast=False)
+    stock = TD3(copy.deepcopy(actor), copy.deepcopy(critic), spec)
     torch.manual_seed(1)
-    fast = TD3(actor, critic, spec)
-    assert fast.fast and type(fast.loss).__name__ == "FusedTD3Loss"
+    fast = TD3(actor, critic, spec, **FAST)
+    assert type(stock.loss).__name__ == "TD3Loss" and type(fast.loss).__name__ == "ManualGradTD3Loss"
     buffer = MultiBuffer(capacity=512, batch_size=256)
     for name in buffer.names:
         buffer.extend(_random_transitions(512, 17, 6), name)
@@ -156,17 +158,17 @@ def test_q1_actor_loss_gradient_equals_td3loss():
     from torchrl.data import Bounded
     from torchrl.objectives import TD3Loss
 
-    from torchrl_esrl.objectives.td3 import FusedTD3Loss, TD3LossQ1Actor
+    from torchrl_esrl.objectives.td3 import ManualGradTD3Loss, TD3LossQ1Actor
 
     torch.manual_seed(0)
     spec = Bounded(-torch.ones(6), torch.ones(6), shape=(6,))
     actor, critic = make_actor(17, spec), make_critic(17, 6)
     batch = _random_transitions(256, 17, 6)
     grads, values = [], []
-    for cls in (TD3Loss, TD3LossQ1Actor, FusedTD3Loss):
+    for cls in (TD3Loss, TD3LossQ1Actor, ManualGradTD3Loss):
         torch.manual_seed(1)
         loss = cls(actor_network=actor, qvalue_network=critic, action_spec=spec, num_qvalue_nets=2, loss_function="l2")
-        assert cls is not FusedTD3Loss or loss._fused_layout(), "the fused path must be the one under test"
+        assert cls is not ManualGradTD3Loss or loss._manual_layout(), "the hand-written path must be the one under test"
         loss_actor, _ = loss.actor_loss(batch)
         actor.zero_grad()
         loss_actor.backward()
@@ -177,30 +179,30 @@ def test_q1_actor_loss_gradient_equals_td3loss():
         torch.testing.assert_close(grad, grads[0], rtol=1e-5, atol=1e-7)
 
 
-def test_fused_value_loss_equals_td3loss():
-    """FusedTD3Loss.value_loss (stacked twin critics, hand-chained target actor) gives stock
+def test_manual_grad_value_loss_equals_td3loss():
+    """ManualGradTD3Loss.value_loss (stacked twin critics, hand-chained target actor) gives stock
     TD3Loss.value_loss's loss, metadata and critic gradients, with targets differing from the
     online networks, bounds other than [-1, 1] and some terminated transitions."""
     from torchrl.objectives import TD3Loss
 
-    from torchrl_esrl.objectives.td3 import FusedTD3Loss
+    from torchrl_esrl.objectives.td3 import ManualGradTD3Loss
 
     spec, actor, critic, batch = _critic_case(256, terminated_every=5)
     results = []
-    for cls in (TD3Loss, FusedTD3Loss):
+    for cls in (TD3Loss, ManualGradTD3Loss):
         loss = _loss_with_moved_targets(cls, actor, critic, spec)
         torch.manual_seed(3)
         value, metadata = loss.value_loss(batch)
         value.backward()
         grads = [p.grad.clone() for p in loss.qvalue_network_params.values(True, True)]
         results.append((value.detach(), metadata, grads))
-    (stock_value, stock_meta, stock_grads), (fused_value, fused_meta, fused_grads) = results
+    (stock_value, stock_meta, stock_grads), (manual_value, manual_meta, manual_grads) = results
     assert isinstance(results[1][0], torch.Tensor) and stock_value.item() > 0
-    torch.testing.assert_close(fused_value, stock_value)
-    assert stock_meta.keys() == fused_meta.keys()
+    torch.testing.assert_close(manual_value, stock_value)
+    assert stock_meta.keys() == manual_meta.keys()
     for key in stock_meta:
-        torch.testing.assert_close(fused_meta[key], stock_meta[key])
-    for a, b in zip(stock_grads, fused_grads):
+        torch.testing.assert_close(manual_meta[key], stock_meta[key])
+    for a, b in zip(stock_grads, manual_grads):
         torch.testing.assert_close(b, a, rtol=1e-5, atol=1e-7)
 
 
@@ -218,14 +220,14 @@ def _critic_case(batch_size, terminated_every, activation="relu"):
 
 
 def _loss_with_moved_targets(cls, actor, critic, spec):
-    """A TD3 loss (stock or fused, same seeded critics) whose target networks differ from the
+    """A TD3 loss (stock or hand-written, same seeded critics) whose target networks differ from the
     online ones, so that a mix-up of the two shows in the critic loss."""
     from torchrl.objectives import TD3Loss
 
     torch.manual_seed(1)
     loss = cls(actor_network=actor, qvalue_network=critic, action_spec=spec, num_qvalue_nets=2, delay_actor=True, delay_qvalue=True, loss_function="l2")
     loss.make_value_estimator(gamma=0.97)
-    assert cls is TD3Loss or loss._fused_layout(), "the fused path must be the one under test"
+    assert cls is TD3Loss or loss._manual_layout(), "the hand-written path must be the one under test"
     torch.manual_seed(2)
     with torch.no_grad():
         for target in (loss.target_actor_network_params, loss.target_qvalue_network_params):
@@ -255,7 +257,7 @@ def _collector_pair_batches(fast, frames_per_batch, batches, seed=3, env_id="Hal
         noise = td3.exploration_policy[1]
         noise.mean.fill_(noise_moments[0])
         noise.std.fill_(noise_moments[1])
-    collector = make_td3_collector(env, td3, frames_per_batch=frames_per_batch, fast=fast)
+    collector = GymTD3Collector(env, td3, frames_per_batch) if fast else make_td3_collector(env, td3, frames_per_batch)
     assert not fast or collector.numpy_steps is not None, "the numpy steps after the actor's tanh must be the path under test"
     torch.manual_seed(7)  # the exploration noise stream
     iterator = iter(collector)
@@ -294,7 +296,7 @@ def test_td3_collector_resumes_mid_episode(fast):
         env = make_env("HalfCheetah-v5", seed=seed, max_episode_steps=60)
         torch.manual_seed(0)
         td3 = TD3(make_actor(17, env.action_spec), make_critic(17, 6), env.action_spec)
-        return make_td3_collector(env, td3, frames_per_batch=10, fast=fast)
+        return GymTD3Collector(env, td3, 10) if fast else make_td3_collector(env, td3, frames_per_batch=10)
 
     first = collector(3)
     batches = iter(first)
@@ -313,8 +315,8 @@ def test_td3_collector_resumes_mid_episode(fast):
         assert torch.equal(got.get(key), expected.get(key)), key
 
 
-def test_numpy_tanh_of_the_fused_loss_matches_torch_tanh_and_its_gradient():
-    """The fused losses' hidden tanh (numpy's kernel, torch's tanh_backward) against torch.tanh:
+def test_numpy_tanh_of_the_manual_grad_loss_matches_torch_tanh_and_its_gradient():
+    """The hand-written losses' hidden tanh (numpy's kernel, torch's tanh_backward) against torch.tanh:
     values within float32 rounding, the same gradient formula, in place only without autograd."""
     from torchrl_esrl.objectives.td3 import _tanh
 
@@ -334,8 +336,8 @@ def test_numpy_tanh_of_the_fused_loss_matches_torch_tanh_and_its_gradient():
         torch.testing.assert_close(z, y_torch.detach(), rtol=0, atol=2e-7)
 
 
-def test_fused_loss_follows_a_loaded_state_dict():
-    """The fused losses look their tensors up once; loading a checkpoint (TorchRL copies into the
+def test_manual_grad_loss_follows_a_loaded_state_dict():
+    """The hand-written losses look their tensors up once; loading a checkpoint (TorchRL copies into the
     parameters in place) must still give the loaded learner's losses."""
     import copy
 
@@ -343,7 +345,7 @@ def test_fused_loss_follows_a_loaded_state_dict():
 
     spec = Bounded(-torch.ones(6), torch.ones(6), shape=(6,))
     batch = _random_transitions(64, 17, 6)
-    source, loaded = (TD3(make_actor(17, spec, (32, 32)), make_critic(17, 6, (32, 32)), spec) for _ in range(2))
+    source, loaded = (TD3(make_actor(17, spec, (32, 32)), make_critic(17, 6, (32, 32)), spec, **FAST) for _ in range(2))
     for _ in range(3):
         source.update(batch)
         loaded.update(batch)
@@ -357,16 +359,16 @@ def test_fused_loss_follows_a_loaded_state_dict():
 
 @pytest.mark.parametrize("activation", ["relu", "tanh"])
 def test_value_loss_backward_equals_td3loss_backward(activation):
-    """FusedTD3Loss.value_loss_backward (loss and critic gradients by the chain rule, no autograd)
+    """ManualGradTD3Loss.value_loss_backward (loss and critic gradients by the chain rule, no autograd)
     against stock TD3Loss.value_loss + backward: same loss, same gradients, with targets
     differing from the online networks, non-unit bounds and terminated transitions."""
     from torchrl.objectives import TD3Loss
 
-    from torchrl_esrl.objectives.td3 import FusedTD3Loss
+    from torchrl_esrl.objectives.td3 import ManualGradTD3Loss
 
     spec, actor, critic, batch = _critic_case(200, terminated_every=7, activation=activation)
     results = []
-    for cls in (TD3Loss, FusedTD3Loss):
+    for cls in (TD3Loss, ManualGradTD3Loss):
         loss = _loss_with_moved_targets(cls, actor, critic, spec)
         torch.manual_seed(3)
         if cls is TD3Loss:
@@ -376,22 +378,22 @@ def test_value_loss_backward_equals_td3loss_backward(activation):
             value = loss.value_loss_backward(batch)
             assert value is not None and value.grad_fn is None
         results.append((value.detach(), [p.grad.clone() for p in loss.qvalue_network_params.values(True, True)]))
-    (stock_value, stock_grads), (fused_value, fused_grads) = results
-    torch.testing.assert_close(fused_value, stock_value)
-    assert len(stock_grads) == len(fused_grads) == 6
-    for a, b in zip(stock_grads, fused_grads):
+    (stock_value, stock_grads), (manual_value, manual_grads) = results
+    torch.testing.assert_close(manual_value, stock_value)
+    assert len(stock_grads) == len(manual_grads) == 6
+    for a, b in zip(stock_grads, manual_grads):
         assert a.shape == b.shape and a.abs().sum() > 0
         torch.testing.assert_close(b, a, rtol=1e-5, atol=1e-6)
 
 
 @pytest.mark.parametrize("bounds", ["unit", "other"])
 def test_actor_loss_backward_equals_td3loss_backward(bounds):
-    """FusedTD3Loss.actor_loss_backward (by the chain rule, no autograd) against stock
+    """ManualGradTD3Loss.actor_loss_backward (by the chain rule, no autograd) against stock
     TD3Loss.actor_loss + backward: same loss, same actor gradients, critics left without any."""
     from torchrl.data import Bounded
     from torchrl.objectives import TD3Loss
 
-    from torchrl_esrl.objectives.td3 import FusedTD3Loss
+    from torchrl_esrl.objectives.td3 import ManualGradTD3Loss
 
     torch.manual_seed(0)
     low, high = (-torch.ones(6), torch.ones(6)) if bounds == "unit" else (-2 * torch.ones(6), torch.linspace(0.5, 3.0, 6))
@@ -399,7 +401,7 @@ def test_actor_loss_backward_equals_td3loss_backward(bounds):
     actor, critic = make_actor(17, spec), make_critic(17, 6)
     batch = _random_transitions(200, 17, 6)
     results = []
-    for cls in (TD3Loss, FusedTD3Loss):
+    for cls in (TD3Loss, ManualGradTD3Loss):
         torch.manual_seed(1)  # the loss draws its critics' parameters
         loss = cls(actor_network=actor, qvalue_network=critic, action_spec=spec, num_qvalue_nets=2, loss_function="l2")
         actor.zero_grad(set_to_none=True)
@@ -407,13 +409,13 @@ def test_actor_loss_backward_equals_td3loss_backward(bounds):
             value, _ = loss.actor_loss(batch)
             value.backward()
         else:
-            assert loss._fused_layout(), "the fused path must be the one under test"
+            assert loss._manual_layout(), "the hand-written path must be the one under test"
             value = loss.actor_loss_backward(batch)
             assert all(p.grad is None for p in loss.qvalue_network_params.values(True, True))
         results.append((value.detach(), [p.grad.clone() for p in actor.parameters()]))
-    (stock_value, stock_grads), (fused_value, fused_grads) = results
-    torch.testing.assert_close(fused_value, stock_value)
-    assert len(stock_grads) == len(fused_grads) == 6
-    for a, b in zip(stock_grads, fused_grads):
+    (stock_value, stock_grads), (manual_value, manual_grads) = results
+    torch.testing.assert_close(manual_value, stock_value)
+    assert len(stock_grads) == len(manual_grads) == 6
+    for a, b in zip(stock_grads, manual_grads):
         assert a.abs().sum() > 0
         torch.testing.assert_close(b, a, rtol=1e-5, atol=1e-7)

@@ -65,6 +65,7 @@ def real_objects(env, td3_loss, collector) -> dict:
         "torchrl.collectors.Collector": collector,
         "torchrl.envs.GymEnv": GymEnv("Pendulum-v1"),
         "tensordict.TensorDict": batch(2),
+        "torch": torch,
     }
 
 
@@ -77,7 +78,7 @@ def test_every_private_name_still_exists(env, td3_loss, collector):
         for name in names
         if not hasattr(objects[cls], name)
     ]
-    assert not missing, f"TorchRL {torchrl.__version__} no longer has {', '.join(missing)}: update torchrl_esrl/torchrl_private.py"
+    assert not missing, f"TorchRL {torchrl.__version__} / torch {torch.__version__} no longer has {', '.join(missing)}: update torchrl_esrl/torchrl_private.py"
 
 
 # ---------------------------------------------------------------------------------- data
@@ -233,3 +234,50 @@ def test_fused_adam_step_is_optimizer_step():
         for key in ("exp_avg", "exp_avg_sq", "step"):
             assert torch.equal(optimizers[0].state[a][key], optimizers[1].state[b][key])
     assert optimizers[1].state[next(nets[1].parameters())]["step"].item() == 7  # 4, back to 4 on loading, 3 more
+
+
+@pytest.mark.parametrize("env_id", ["HalfCheetah-v5", "Swimmer-v5", "Walker2d-v5", "Hopper-v5", "Ant-v5"])
+def test_gym_mujoco_constants_hold_what_each_task_rule_reads(env_id):
+    """The batched ES backend reads these private gymnasium constants per task: each must exist
+    (a rename in gymnasium fails here, naming it)."""
+    from torchrl_esrl.collectors.mujoco_batch import TASKS
+
+    rules = TASKS[env_id]
+    needed = {"_forward_reward_weight", "_ctrl_cost_weight", "_exclude_current_positions_from_observation"}
+    if rules.healthy is not None:
+        needed |= {"_healthy_reward", "_terminate_when_unhealthy", "_healthy_z_range"}
+        needed |= {"_healthy_angle_range"} if env_id != "Ant-v5" else set()
+        needed |= {"_healthy_state_range"} if env_id == "Hopper-v5" else set()
+    if rules.contact_forces:
+        needed |= {"_contact_cost_weight", "_contact_force_range"}
+    constants = torchrl_private.gym_mujoco_constants(gymnasium.make(env_id).unwrapped)
+    missing = sorted(needed - set(constants))
+    assert not missing, f"gymnasium {gymnasium.__version__} {env_id} no longer has {missing}: update torchrl_esrl/torchrl_private.py"
+
+
+def test_foreach_lerp_is_lerp_per_tensor():
+    generator = torch.Generator().manual_seed(0)
+    targets = [torch.randn(5, 3, generator=generator), torch.randn(7, generator=generator)]
+    sources = [torch.randn_like(t) for t in targets]
+    expected = [t.clone().lerp_(s, 0.005) for t, s in zip(targets, sources)]
+    torchrl_private.foreach_lerp_(targets, sources, 0.005)
+    for got, want in zip(targets, expected):
+        assert torch.equal(got, want)
+
+
+def test_gym_env_state_restores_a_mujoco_episode_mid_way():
+    """The snapshot of a gymnasium env's private wrapper state (TimeLimit's step count...) and its
+    simulator: the restored env takes the same steps, and ends at the same time limit."""
+    import numpy as np
+
+    source, target = gymnasium.make("Hopper-v5", max_episode_steps=12), gymnasium.make("Hopper-v5", max_episode_steps=12)
+    source.reset(seed=3)
+    target.reset(seed=99)
+    actions = np.random.default_rng(0).uniform(-1, 1, size=(12, 3)).astype(np.float32)
+    for action in actions[:5]:
+        source.step(action)
+    torchrl_private.load_gym_env_state(target, torchrl_private.gym_env_state(source))
+    for action in actions[5:]:
+        expected, got = source.step(action), target.step(action)
+        assert np.array_equal(expected[0], got[0]) and expected[1:4] == got[1:4]
+    assert got[3] or got[2]  # the time limit (12 steps) came at the same step

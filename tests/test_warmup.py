@@ -10,7 +10,7 @@ from torchrl_esrl.envs import make_env
 from torchrl_esrl.modules.networks import make_actor, make_critic
 from torchrl_esrl.modules.warmup import RandomWarmup
 from torchrl_esrl.objectives.td3 import TD3
-from torchrl_esrl.run.factories import make_td3_batches
+from torchrl_esrl.run.factories import make_frame_batches
 
 
 def make_td3_with_warmup(frames: int, seed: int = 7):
@@ -23,11 +23,12 @@ def make_td3_with_warmup(frames: int, seed: int = 7):
 
 
 def collect_actions(env, td3, batches: int, restore_from=None, fast: bool = True) -> torch.Tensor:
-    config = OmegaConf.create({"device": "cpu", "td3": {"frames_per_batch": 10, "fast": fast}})
-    collector, td3_batches = make_td3_batches(config, env, td3)  # the recipes' factory
+    config = OmegaConf.create({"device": "cpu", "implementation": "fast" if fast else "reference", "td3": {"frames_per_batch": 10}})
+    collector, frame_batches = make_frame_batches(config, env, td3)  # the recipes' factory
+    assert type(collector).__name__ == ("GymTD3Collector" if fast else "Collector")
     if restore_from is not None:  # as the recipes do: components built, then the checkpoint loaded
         Checkpoint(exploration=td3.exploration_policy).load(restore_from)
-    actions = [next(td3_batches)["action"].reshape(-1, 2) for _ in range(batches)]
+    actions = [next(frame_batches)["action"].reshape(-1, 2) for _ in range(batches)]
     collector.shutdown()
     return torch.cat(actions)
 

@@ -109,12 +109,15 @@ def make_gym_env(env_id: str, max_episode_steps: int | None = None) -> gym.Env:
     return gym.make(resolve_env_id(env_id), **kwargs)
 
 
+TD3_TRANSFORMS = (DoubleToFloat, RewardSum, StepCounter)  # the transforms of make_env, in order
+
+
 def make_env(env_id: str, seed: int = 0, max_episode_steps: int | None = None) -> TransformedEnv:
     """The TorchRL env TD3 interacts with: float32 observations, ``episode_reward``, ``step_count``."""
     kwargs = {} if max_episode_steps is None else {"max_episode_steps": int(max_episode_steps)}
     env = TransformedEnv(
         GymEnv(resolve_env_id(env_id), **kwargs),
-        Compose(DoubleToFloat(), RewardSum(), StepCounter()),
+        Compose(*(transform() for transform in TD3_TRANSFORMS)),
     )
     env.set_seed(seed)
     return env

@@ -1,4 +1,4 @@
-"""Every use of a TorchRL (or tensordict, or torch) private attribute in this project, fenced in one place.
+"""Every use of a private attribute of TorchRL, tensordict, torch (or gymnasium) in this project, fenced in one place.
 
 TorchRL's public API does not cover a few things this project needs (the reasons are given per
 function). Each access goes through a function here, so a TorchRL upgrade that renames one breaks
@@ -28,11 +28,12 @@ from torchrl_esrl.arrays import numpy_views
 PRIVATE_NAMES: dict[str, tuple[str, ...]] = {
     "torchrl.data.LazyTensorStorage": ("_storage", "_len", "_set_last_cursor", "_last_cursor", "_bump_mutation_revision"),
     "torchrl.data.TensorDictRoundRobinWriter": ("_cursor", "_write_count", "_track_generations", "_mark_update_entities"),
-    "torchrl.objectives.TD3Loss": ("_maybe_get_priority_weight", "_cached_detach_qvalue_network_params", "_reduce_loss"),
+    "torchrl.objectives.TD3Loss": ("_maybe_get_priority_weight", "_loss_mask_keys", "_cached_detach_qvalue_network_params", "_reduce_loss"),
     "torchrl.objectives.SoftUpdate": ("_target_names", "_sources", "_targets"),
     "torchrl.collectors.Collector": ("_carrier", "_frames", "_iter", "_traj_pool"),
     "torchrl.envs.GymEnv": ("_env",),
     "tensordict.TensorDict": ("_new_unsafe", "_tensordict"),
+    "torch": ("_foreach_lerp_", "_foreach_add_", "_fused_adam_"),
 }
 
 # ------------------------------------------------------------------------ data (replay buffers)
@@ -44,8 +45,8 @@ def unchecked_tensordict(source: dict, batch_size: torch.Size, device) -> Tensor
     leaves built to fit: CPU tensors on ``device`` whose leading dims are ``batch_size``.
 
     Why private: the TD3 collector builds one 8-leaf TensorDict per frame, and the public
-    constructor's per-leaf validation is ~25 us of a ~0.3 ms frame; ``TensorDict._new_unsafe``
-    is tensordict's own constructor for data it already knows to be valid.
+    constructor validates every leaf again; ``TensorDict._new_unsafe`` is tensordict's own
+    constructor for data it already knows to be valid (docs/performance.md, "buffer_writes").
     ``tests/test_torchrl_private.py`` checks it against the public constructor.
     """
     return TensorDict._new_unsafe(source, batch_size=batch_size, device=device)
@@ -56,8 +57,8 @@ def tensordict_leaves(data: TensorDictBase, keys) -> list:
     (``get`` itself for other TensorDict types, or where a key does not lead to a tensor).
 
     Why private: the TD3 side writes one 7-key transition per frame, and ``get`` of a nested key
-    costs ~1.5 us of key handling, ~10 us a frame; ``TensorDict._tensordict`` is the dict ``get``
-    reads from. ``tests/test_torchrl_private.py`` checks it against ``get``.
+    goes through tensordict's key handling each time; ``TensorDict._tensordict`` is the dict
+    ``get`` reads from. ``tests/test_torchrl_private.py`` checks it against ``get``.
     """
     leaves = []
     for key in keys:
@@ -75,9 +76,8 @@ def tensor_storage_data(storage) -> TensorDictBase | None:
     Why private: the MultiBuffer gathers a batch from three storages straight into one
     preallocated TensorDict (one ``index_select`` per key and buffer). The public
     ``storage.get(index)`` builds a new TensorDict per call (after slicing ``[:len]`` when the
-    storage is not full), and three of those plus a ``torch.cat`` cost about 2.5x one buffer's
-    ``sample`` (``benchmarks/buffer_sampling.py``, "naive"). No public accessor returns the
-    storage's tensors themselves.
+    storage is not full), then the parts are concatenated (``benchmarks/buffer_sampling.py``,
+    "naive"). No public accessor returns the storage's tensors themselves.
     """
     if not isinstance(storage, TensorStorage) or not storage.initialized:
         return None
@@ -96,8 +96,8 @@ def append_rows(buffer, data: TensorDictBase, keys=None) -> torch.Tensor | None:
     as ``extend(data.select(*keys))`` would (``data`` may hold more); all of ``data``'s otherwise.
 
     Why private: the TD3 side writes one transition per frame, and ``TensorDictReplayBuffer.extend``
-    spends ~0.24 ms of TensorDict machinery (inverse transform, ``to``, validation of every
-    leaf) on it, as much as stepping the env and the actor (``benchmarks/td3_frame.py``). The
+    runs its TensorDict machinery (inverse transform, ``to``, validation of every leaf) on each
+    (``benchmarks/td3_frame.py``, docs/performance.md). The
     writer's cursor and the storage's length have no public setters. ``tests/test_torchrl_private.py``
     compares this path with ``extend`` on a wrapping buffer: contents, length, cursor, state dicts.
     """
@@ -122,8 +122,8 @@ def append_rows(buffer, data: TensorDictBase, keys=None) -> torch.Tensor | None:
         if not isinstance(stored, TensorDictBase) or sorted(map(str, [*keys, "index"])) != sorted(map(str, stored.keys(True, True))):
             return None
         destinations, index_leaf = [stored.get(key) for key in keys], stored.get("index")
-        # numpy views of CPU storage: a one-row slice copy through numpy costs ~0.2 us against
-        # ~2 us for torch's __setitem__ (the TD3 side writes one row per frame).
+        # numpy views of CPU storage: a one-row slice copy through numpy skips torch's
+        # __setitem__ dispatch (the TD3 side writes one row per frame).
         arrays = numpy_views([*destinations, index_leaf])
         kinds = [(d.dtype, d.shape[1:]) for d in destinations]
         layout = _APPEND_LAYOUTS[buffer] = (stored, keys, destinations, index_leaf, arrays, kinds)
@@ -133,7 +133,7 @@ def append_rows(buffer, data: TensorDictBase, keys=None) -> torch.Tensor | None:
         return None  # extend casts (or refuses) as TorchRL decides
     rows, capacity = data.batch_size[0], storage.max_size
     cursor = writer._cursor
-    index = torch.from_numpy(np.arange(cursor, cursor + rows, dtype=np.int64))  # torch.arange's values, ~5x cheaper for a few rows
+    index = torch.from_numpy(np.arange(cursor, cursor + rows, dtype=np.int64))  # torch.arange's values, without its dispatch
     sources = numpy_views(values) if cursor + rows <= capacity and arrays is not None else None
     writer._cursor = (cursor + rows) % capacity
     writer._write_count += rows
@@ -147,7 +147,7 @@ def append_rows(buffer, data: TensorDictBase, keys=None) -> torch.Tensor | None:
             destination[where] = value
         stored_index[where] = index
     # What _set_last_cursor(index) records (the index, and its last entry as the shared int),
-    # without its tensor reshape, indexing and item (~2.5 us a frame).
+    # without its tensor reshape, indexing and item.
     storage._set_last_cursor((cursor + rows - 1) % capacity)
     storage._last_cursor = index
     storage._len = min(storage._len + rows, capacity)
@@ -163,6 +163,17 @@ def loss_priority_weight(loss, tensordict):
     sampling). Used by the TD3 loss overrides to fall back to TorchRL's own code when weights
     are present; the public API has no getter (``LossModule._maybe_get_priority_weight``)."""
     return loss._maybe_get_priority_weight(tensordict)
+
+
+def reweights_or_masks(loss, tensordict) -> bool:
+    """Whether a TorchRL loss's reduction would weight (prioritised replay) or mask (its loss-mask
+    keys, e.g. ``("collector", "mask")``) this batch. The hand-written TD3 gradients compute the
+    plain batch mean only and hand such batches to TorchRL's own code; the public API has no
+    getter for either (``LossModule._maybe_get_priority_weight``, ``LossModule._loss_mask_keys``)."""
+    if loss._maybe_get_priority_weight(tensordict) is not None:
+        return True
+    keys = tensordict.keys(True)
+    return any(key in keys for key in loss._loss_mask_keys())
 
 
 def reduce_loss(loss, value, tensordict, weights):
@@ -197,8 +208,8 @@ def fused_adam_step(optimizer: torch.optim.Adam) -> None:
     """``optimizer.step()`` of a fused (``fused=True``) torch Adam, as one call of the kernel it
     runs (``torch._fused_adam_``) after the same step-count increment (``torch._foreach_add_``).
 
-    ``Optimizer.step`` spends ~30-40 us of Python per call around that kernel (hooks, state
-    lookups, option checks), ~1% of a TD3 update on 2 CPU cores. The state tensors are torch's
+    ``Optimizer.step`` runs Python around that kernel (hooks, state lookups, option checks) on
+    every call (docs/performance.md, "adam"). The state tensors are torch's
     own (``state_dict`` and checkpoints unchanged); the lists are rebuilt when the state dict
     object changes (``load_state_dict`` replaces it). Anything but one parameter group of plain
     fused Adam with every gradient present goes through ``optimizer.step()``, which also makes
@@ -237,7 +248,7 @@ def detached_qvalue_params(loss):
     return loss._cached_detach_qvalue_network_params
 
 
-# ------------------------------------------------------------------ collectors (TD3 env state)
+# ------------------------------------------------------------------ collectors (TD3 env)
 def gym_env_of(env):
     """The gymnasium env inside a TorchRL ``GymEnv``, possibly under ``TransformedEnv`` layers.
     ``GymEnv`` keeps it as ``_env`` with no public accessor; the fast TD3 stepping path and the
@@ -261,3 +272,85 @@ def restore_collector(collector, frames: int, iterations: int, carrier, traj_poo
     if traj_pool_state is not None:
         collector._traj_pool.load_state_dict(traj_pool_state)
     collector._carrier = carrier
+
+
+# ------------------------------------------------------------------ collectors (TD3 env state)
+_SCALARS = (bool, int, float, str, type(None))
+
+
+def _gym_layers(gym_env):
+    layers = [gym_env]
+    while hasattr(layers[-1], "env"):
+        layers.append(layers[-1].env)
+    return layers
+
+
+def gym_env_state(gym_env) -> dict:
+    """A gymnasium env's state mid-episode: each wrapper's scalar attributes (``TimeLimit``'s
+    ``_elapsed_steps``, ``OrderEnforcing``'s ``_has_reset``...), the core env's ``np_random`` and
+    arrays, and for MuJoCo envs the full integration state from ``mj_getState``.
+
+    Why private: gymnasium wrappers keep their episode state in private attributes with no
+    getter or setter, and TorchRL's ``GymEnv``/``Collector`` state dicts leave the simulator out;
+    a checkpoint taken mid-episode must resume the very episode. Every scalar attribute is copied
+    (not a list of names), so a renamed attribute is still saved and restored;
+    ``tests/test_td3.py`` resumes a collector mid-episode and compares the frames."""
+    layers = _gym_layers(gym_env)
+    core = layers[-1]
+    state = {
+        "wrappers": [{k: v for k, v in vars(w).items() if isinstance(v, _SCALARS) and k != "_saved_kwargs"} for w in layers[:-1]],
+        "core": {k: v.copy() if isinstance(v, np.ndarray) else v for k, v in vars(core).items() if isinstance(v, (np.ndarray, *_SCALARS)) and not k.startswith("_ezpickle")},
+        "np_random": core.np_random.bit_generator.state,
+    }
+    if hasattr(core, "model") and hasattr(core, "data"):
+        import mujoco
+
+        spec = mujoco.mjtState.mjSTATE_INTEGRATION
+        physics = np.empty(mujoco.mj_stateSize(core.model, spec))
+        mujoco.mj_getState(core.model, core.data, physics, spec)
+        state["mujoco"] = physics
+    return state
+
+
+def load_gym_env_state(gym_env, state: dict) -> None:
+    """Restore :func:`gym_env_state`'s snapshot into ``gym_env`` (its wrappers and core env)."""
+    layers = _gym_layers(gym_env)
+    for layer, attributes in zip(layers[:-1], state["wrappers"]):
+        vars(layer).update(attributes)
+    core = layers[-1]
+    vars(core).update(state["core"])
+    core.np_random.bit_generator.state = state["np_random"]
+    if "mujoco" in state:
+        import mujoco
+
+        mujoco.mj_setState(core.model, core.data, np.asarray(state["mujoco"], dtype=np.float64), mujoco.mjtState.mjSTATE_INTEGRATION)
+
+
+# ------------------------------------------------------------- gymnasium MuJoCo task constants
+GYM_MUJOCO_CONSTANTS = (
+    "_forward_reward_weight", "_ctrl_cost_weight", "_healthy_reward", "_terminate_when_unhealthy",
+    "_healthy_z_range", "_healthy_angle_range", "_healthy_state_range", "_contact_cost_weight",
+    "_contact_force_range", "_main_body", "_exclude_current_positions_from_observation",
+    "_include_cfrc_ext_in_observation",
+)  # fmt: skip
+
+
+def gym_mujoco_constants(env) -> dict:
+    """The reward and termination constants of a gymnasium v5 MuJoCo env (those of
+    :data:`GYM_MUJOCO_CONSTANTS` it has), as its ``step`` reads them.
+
+    Why private: gymnasium keeps its constructor arguments in private attributes only; the
+    batched ES backend recomputes rewards from them so that it cannot drift from gymnasium's
+    values. ``tests/test_torchrl_private.py`` checks, per task, that every constant the task's
+    rules read is still there; ``tests/test_mujoco_batch.py`` compares the rewards."""
+    return {k: getattr(env, k) for k in GYM_MUJOCO_CONSTANTS if hasattr(env, k)}
+
+
+# ----------------------------------------------------------------------------------- torch ops
+def foreach_lerp_(targets: list, sources: list, weight: float) -> None:
+    """``target.lerp_(source, weight)`` for every pair, as one call.
+
+    Why private: ``torch._foreach_lerp_`` is the multi-tensor kernel torch's own optimisers use;
+    torch has no public foreach API. ``tests/test_torchrl_private.py`` compares it with
+    ``lerp_`` tensor by tensor."""
+    torch._foreach_lerp_(targets, sources, weight)

@@ -40,7 +40,7 @@ class PhaseProgress:
 
 def td3_phase(
     frames: int,
-    batches: Iterator[TensorDictBase],
+    frame_batches: Iterator[TensorDictBase],
     td3,
     buffer,
     on_episode: Callable[[float], None] | None = None,
@@ -50,7 +50,7 @@ def td3_phase(
 ) -> dict[str, float]:
     """Act for ``frames`` frames, writing to ``buffer``'s noisy part and learning once it is ready.
 
-    ``batches`` is an iterator over a TD3 collector (:func:`~torchrl_esrl.collectors.td3_collector.make_td3_collector`,
+    ``frame_batches`` iterates over a TD3 collector's batches of frames (:func:`~torchrl_esrl.run.factories.make_frame_batches`,
     kept alive across phases so episodes continue where they stopped). The phase runs on
     ``td3.num_threads`` torch threads. ``buffer`` is a :class:`~torchrl_esrl.data.multibuffer.MultiBuffer`
     (written under ``"noisy"``) or any TorchRL replay buffer. ``on_episode`` sees each finished
@@ -63,7 +63,7 @@ def td3_phase(
         is_multibuffer = hasattr(buffer, "ready")
         ready = False  # the phase only adds items: once ready, the buffer stays ready (checked once, not per frame)
         while p.collected < frames:
-            batch = next(batches)
+            batch = next(frame_batches)
             p.collected += batch.numel()
             if is_multibuffer:
                 buffer.extend(batch, "noisy")

@@ -16,7 +16,7 @@ from torchrl_esrl.collectors.backends import BACKENDS, available_backends, backe
 from torchrl_esrl.collectors.generation import Generation
 from torchrl_esrl.envs import resolve_env_id
 from torchrl_esrl.errors import ConfigError
-from torchrl_esrl.modules.networks import Mirrored, PopulationActor
+from torchrl_esrl.modules.networks import Mirrored, ModulePopulation
 
 
 class ESCollector:
@@ -29,11 +29,16 @@ class ESCollector:
         backend: ``"auto"`` or a name in :data:`BACKENDS`.
         max_episode_steps: episode length limit (the env's own when None).
         seed: seeds the stream of episode seeds (one fresh reset seed per member and call).
+        population: the class that computes the members' actions from their flat parameters:
+            :class:`~torchrl_esrl.modules.networks.ModulePopulation` (the reference: ``actor``
+            itself through ``functional_call``) or
+            :class:`~torchrl_esrl.modules.networks.PopulationActor` (one batched forward, which
+            also reads OpenAI-ES's mirrored pairs; it refuses actors it cannot compute exactly).
     """
 
-    def __init__(self, env_id: str, actor, backend: str = "auto", max_episode_steps: int | None = None, seed: int = 0, **backend_kwargs):
+    def __init__(self, env_id: str, actor, backend: str = "auto", max_episode_steps: int | None = None, seed: int = 0, population=ModulePopulation, **backend_kwargs):
         self.env_id = resolve_env_id(env_id)
-        self.population_actor = PopulationActor(actor)
+        self.population_actor = population(actor)
         if backend == "auto":
             backend = default_backend(self.env_id)
         if backend not in BACKENDS:
@@ -50,6 +55,8 @@ class ESCollector:
         pair's noise once per step. The rows of ``params`` stay what is evaluated."""
         if mirrored is not None and not mirrored.matches(params):
             raise ValueError("mirrored: its center +- offsets are not the rows of params (member k and P/2 + k)")
+        if not self.population_actor.mirrored_pairs:  # the flat rows are what is evaluated
+            mirrored = None
         params = params.detach().float()
         if params.dim() == 1:
             params = params.unsqueeze(0)

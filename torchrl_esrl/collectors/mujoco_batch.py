@@ -34,6 +34,7 @@ import torch
 from torchrl_esrl.collectors.generation import Generation, transitions_from_arrays
 from torchrl_esrl.envs import make_gym_env, resolve_env_id
 from torchrl_esrl.modules.networks import Mirrored, PopulationActor, one_blas_thread
+from torchrl_esrl.torchrl_private import gym_mujoco_constants
 
 _INTEGRATION_STATE = mujoco.mjtState.mjSTATE_INTEGRATION
 
@@ -78,15 +79,6 @@ TASKS: dict[str, TaskRules] = {
     "Ant-v5": TaskRules(2, None, 1, _ant_healthy, True),
 }
 
-# Constants read from the gymnasium env, so the batch computes with gymnasium's own values.
-_CONSTANTS = (
-    "_forward_reward_weight", "_ctrl_cost_weight", "_healthy_reward", "_terminate_when_unhealthy",
-    "_healthy_z_range", "_healthy_angle_range", "_healthy_state_range", "_contact_cost_weight",
-    "_contact_force_range", "_main_body", "_exclude_current_positions_from_observation",
-    "_include_cfrc_ext_in_observation",
-)  # fmt: skip
-
-
 @dataclass(frozen=True)
 class _Chunk:
     """Population members one worker plays together, on one batch."""
@@ -124,25 +116,19 @@ class MujocoBatchBackend:
         workers: threads that each play whole chunks on a batch of their own, taking the next
             chunk when done with one (default: 2, or 1 on one thread); each batch steps on
             ``nthread // workers`` MuJoCo threads. More workers make smaller chunks, and every chunk
-            pays ~0.1 ms of numpy bookkeeping per step under the GIL (not measured beyond 2 cores).
+            pays its numpy bookkeeping per step under the GIL (not measured beyond 2 cores).
         chunks_per_worker: the population is cut into up to ``workers * chunks_per_worker``
             chunks of (nearly) equal size: more than one per worker evens out episodes that end
             early, and each chunk's noise is a smaller share of the cache.
         min_chunk: members a chunk holds at least, unless that would leave a worker idle: each
-            chunk pays its own numpy bookkeeping per step under the GIL. Measured (HalfCheetah,
-            2 cores, medians of 3): 5 members in 2 chunks 0.25 s, in 4 chunks 0.38-0.49 s; 40
-            members in 2 chunks 0.95 s, in 4 chunks 1.04 s; 120 members in 4 chunks 2.80 s, in 2
-            chunks 3.20 s.
+            chunk pays its own numpy bookkeeping per step under the GIL (docs/performance.md).
         persistent: keep one ``MjData`` per simulation (needed, and forced, for Ant's contact forces).
 
     Every member's arithmetic is its own (its physics, and its forward: :class:`PopulationActor`
     computes each member, or each mirrored pair, with products of the same shapes), so every
     chunking and every number of workers give each member bit for bit the same episode
-    (tests/test_mujoco_batch.py). Measured on the 2-core machine (HalfCheetah, 60 mirrored pairs,
-    medians of 3 interleaved rounds): two workers on four chunks 2.82 s a generation, 0.68x raw
-    physics, against 3.52 s, 0.54x, for the whole population stepped in lock-step on two MuJoCo
-    threads with the forward split over two threads (no barrier between the threads at every step;
-    a chunk's noise is a quarter of the population's 17 MB).
+    (tests/test_mujoco_batch.py). Workers never wait for each other within an episode, and a
+    chunk's share of the population's parameters stays in cache between its steps.
 
     Given the population as :class:`~torchrl_esrl.modules.networks.Mirrored` pairs (OpenAI-ES),
     chunks are made of whole pairs and the forward is :meth:`PopulationActor.mirrored
@@ -178,7 +164,7 @@ class MujocoBatchBackend:
         self._pool: ThreadPoolExecutor | None = None
         reset_env = self.workers[0].reset_env
         env = reset_env.unwrapped
-        self.constants = {k: getattr(env, k) for k in _CONSTANTS if hasattr(env, k)}
+        self.constants = gym_mujoco_constants(env)  # gymnasium's own values, so the batch cannot drift from them
         if not self.constants.get("_exclude_current_positions_from_observation", True):
             raise ValueError("mujoco_batch backend handles the default observation only")
         self.model = env.model

@@ -1,32 +1,33 @@
 """The TD3 side's collector (paper, Algorithm 1 "act with exploration noise").
 
 Two equal paths over the training env of :func:`torchrl_esrl.envs.make_env`, acting with the
-exploration policy: TorchRL's ``Collector`` (the reference) and :class:`GymTD3Collector`, which
-steps the same gymnasium env directly (the default, ``td3.fast``). Both yield TensorDicts with
-the replay buffer's transition keys and ``("next", "episode_reward")``.
+exploration policy: TorchRL's ``Collector`` (the reference, :func:`make_td3_collector`) and
+:class:`GymTD3Collector`, which steps the same gymnasium env directly. Both yield TensorDicts with
+the replay buffer's transition keys and ``("next", "episode_reward")``;
+:func:`torchrl_esrl.run.factories.make_frame_batches` picks one.
 """
 from __future__ import annotations
 
 import numpy as np
 import torch
 from tensordict import TensorDict, TensorDictBase
+from tensordict.nn import TensorDictSequential
 from torchrl.collectors import Collector
+from torchrl.envs import Compose, GymEnv, TransformedEnv
+from torchrl.modules import AdditiveGaussianModule, TanhModule
 
+from torchrl_esrl.envs import TD3_TRANSFORMS
 from torchrl_esrl.modules.networks import squash
 from torchrl_esrl.modules.warmup import RandomWarmup
-from torchrl_esrl.torchrl_private import collector_carrier, gym_env_of, restore_collector, unchecked_tensordict
+from torchrl_esrl.torchrl_private import collector_carrier, gym_env_of, gym_env_state, load_gym_env_state, restore_collector, unchecked_tensordict
 
 _ACTIVATION_FUNCTIONS = {torch.nn.Tanh: torch.tanh, torch.nn.ReLU: torch.relu}  # what each module's forward computes
 
 
-def make_td3_collector(env, td3, frames_per_batch: int = 1, fast: bool = False, device="cpu"):
-    """A collector acting with the exploration policy; runs for as long as it is iterated.
-
-    ``fast`` (on CPU): :class:`GymTD3Collector`; otherwise TorchRL's ``Collector``, whose env steps
-    on its own device (CPU physics) while the policy and the collected data are on ``device``.
-    """
-    if fast and torch.device(device).type == "cpu":
-        return GymTD3Collector(env, td3, frames_per_batch)
+def make_td3_collector(env, td3, frames_per_batch: int = 1, device="cpu") -> Collector:
+    """The reference: TorchRL's ``Collector`` acting with the exploration policy, for as long as it
+    is iterated; the env steps on its own device (CPU physics) while the policy and the collected
+    data are on ``device``."""
     return Collector(
         env,
         td3.exploration_policy,
@@ -39,41 +40,76 @@ def make_td3_collector(env, td3, frames_per_batch: int = 1, fast: bool = False, 
     )
 
 
-class GymTD3Collector:
-    """TD3's acting loop stepping the gymnasium env of a TorchRL ``GymEnv`` directly.
+def _actor_layers(actor):
+    """``[(weight, bias, activation function or None), ...]`` of a :func:`~torchrl_esrl.modules.networks.make_actor`
+    actor's MLP (Linear layers, each followed by at most one tanh or ReLU), with the Parameter
+    objects themselves (TD3's optimiser and ``load_flat_parameters`` update them in place); None
+    for any other layer sequence."""
+    mlp = getattr(actor[0], "module", None) if isinstance(actor, TensorDictSequential) and len(actor.module) == 2 else None
+    if not isinstance(mlp, torch.nn.Sequential) or isinstance(getattr(mlp, "out_features", None), (tuple, list, torch.Size)):
+        return None
+    layers = []
+    for module in mlp:
+        if type(module) is torch.nn.Linear:
+            layers.append((module.weight, module.bias, None))
+        elif type(module) in _ACTIVATION_FUNCTIONS and layers and layers[-1][2] is None:
+            layers[-1] = (*layers[-1][:2], _ACTIVATION_FUNCTIONS[type(module)])
+        else:
+            return None
+    return layers or None
 
-    ``Collector`` + ``TransformedEnv(GymEnv, DoubleToFloat, RewardSum, StepCounter)`` spends
-    ~4 ms per frame building, stacking and cloning TensorDicts around a ~0.1 ms MuJoCo step
-    and a ~0.05 ms actor forward (docs/performance.md). This loop does what that stack does for
-    this env and this policy, in the same order: ``gym_env.reset()`` when an episode ends (no
-    seed: the TorchRL env was seeded by ``set_seed``), the actor's MLP and ``TanhModule``
-    squashing, the ``AdditiveGaussianModule`` draw (one ``torch.normal`` per frame, the same RNG
-    stream) projected on the action spec, float32 observations and rewards, and the float32
-    running episode return of ``RewardSum``. Each batch of ``frames_per_batch`` frames comes out
-    as one TensorDict (tests/test_td3.py checks it against the ``Collector`` path, frame by
-    frame). Written by hand because TorchRL offers no lighter single-env stepping path.
+
+def _refusal(env, policy, device) -> str | None:
+    """Why :class:`GymTD3Collector` cannot step exactly what ``Collector`` over ``env`` would, or None."""
+    if torch.device(device).type != "cpu" or (env.device is not None and torch.device(env.device).type != "cpu"):
+        return f"the env and policy must be on cpu (got env {env.device}, policy {device})"
+    if not isinstance(env, TransformedEnv) or type(env.base_env) is not GymEnv:
+        return f"the env must be TransformedEnv(GymEnv) (got {type(env).__name__})"
+    transforms = tuple(type(t) for t in env.transform) if isinstance(env.transform, Compose) else (type(env.transform),)
+    if transforms != TD3_TRANSFORMS:
+        return f"the env's transforms must be {', '.join(t.__name__ for t in TD3_TRANSFORMS)} (got {', '.join(t.__name__ for t in transforms)})"
+    inner = policy.policy if isinstance(policy, RandomWarmup) else policy
+    if not isinstance(inner, TensorDictSequential) or len(inner.module) != 2 or type(inner.module[1]) is not AdditiveGaussianModule:
+        return "the policy must be the actor followed by AdditiveGaussianModule"
+    actor = inner.module[0]
+    if _actor_layers(actor) is None or not isinstance(actor[1], TanhModule) or list(actor[0].in_keys) != ["observation"]:
+        return "the actor must be Linear layers with tanh or ReLU between them, then TanhModule"
+    return None
+
+
+class GymTD3Collector:
+    """TD3's acting loop stepping the gymnasium env of a TorchRL ``GymEnv`` directly: the fast
+    counterpart of TorchRL's ``Collector`` over ``TransformedEnv(GymEnv, DoubleToFloat, RewardSum,
+    StepCounter)`` (:func:`make_td3_collector`).
+
+    It does what that stack does for this env and this policy, in the same order:
+    ``gym_env.reset()`` when an episode ends (no seed: the TorchRL env was seeded by
+    ``set_seed``), the actor's MLP and ``TanhModule`` squashing, the ``AdditiveGaussianModule``
+    draw (one standard normal draw per frame, the same RNG stream) projected on the action spec,
+    float32 observations and rewards, and the float32 running episode return of ``RewardSum``.
+    Each batch of ``frames_per_batch`` frames comes out as one TensorDict (tests/test_td3.py
+    checks it against the ``Collector`` path, frame by frame). Any other env (another transform,
+    another device) or policy (another layer or activation) is refused with a one-line error
+    (:meth:`supports` says which are taken; the factory hands the others to ``Collector``).
     """
 
+    @staticmethod
+    def supports(env, td3, device="cpu") -> bool:
+        return _refusal(env, td3.exploration_policy, device) is None
+
     def __init__(self, env, td3, frames_per_batch: int = 1):
+        reason = _refusal(env, td3.exploration_policy, env.device or "cpu")
+        if reason is not None:
+            raise ValueError(f"GymTD3Collector steps exactly what TorchRL's Collector would only for make_env's env and make_actor's actor: {reason}")
         self.env = env
         self.gym_env = gym_env_of(env)
         self.frames_per_batch = int(frames_per_batch)
         self.device = env.device
-        if self.device is not None and torch.device(self.device).type != "cpu":  # next_batch builds its TensorDicts from numpy arrays
-            raise ValueError(f"GymTD3Collector: the env's device must be cpu, got {self.device}")
         policy = td3.exploration_policy
         # Fujimoto's uniform warm-up (td3.random_frames) wraps the noisy actor: its draws, then the actor's.
         self.warmup = policy if isinstance(policy, RandomWarmup) else None
         actor, noise = (policy.policy if self.warmup is not None else policy)[:2]
-        # The actor's Linear layers, as (weight, bias, activation) with the Parameter objects
-        # themselves: TD3's optimiser and load_flat_parameters update them in place.
-        self.layers, activation = [], None
-        for module in reversed(actor[0].module):
-            if isinstance(module, torch.nn.Linear):
-                self.layers.insert(0, (module.weight, module.bias, activation))
-                activation = None
-            else:  # the function the activation module calls, without the module call around it
-                activation = _ACTIVATION_FUNCTIONS.get(type(module), module)
+        self.layers = _actor_layers(actor)
         self.tanh_module = actor[1]
         self.noise = noise
         # Buffers that load_state_dict overwrites in place: looked up once, as the layers are.
@@ -130,10 +166,10 @@ class GymTD3Collector:
                 else:
                     # squash() and the noise, the tanh by torch's kernel and the elementwise float32
                     # ops after it by numpy's, in torch's order: the same roundings (bit for bit,
-                    # tests/test_td3.py), at ~1 us an op on one row against torch's ~3-4 us.
+                    # tests/test_td3.py), without torch's per-op dispatch on one row.
                     low, high, action_low, action_high, sigma, noise_mean, noise_std = self.numpy_steps
                     # ATen's normal(mean, std) is a standard normal draw, then * std + mean: the
-                    # same generator stream and values as randn's draw scaled here (~10 us less).
+                    # same generator stream and values as randn's draw scaled here.
                     draw = torch.randn(1, self.action_dim, dtype=torch.float32).numpy() * noise_std + noise_mean
                     squashed = low + (high - low) * (x.tanh().numpy() + 1) / 2
                     action = torch.from_numpy(np.clip(squashed + draw * sigma, action_low, action_high))
@@ -188,57 +224,12 @@ class GymTD3Collector:
 def finished_episode_returns(batch: TensorDictBase) -> list[float]:
     """Returns of the episodes that ended inside a collected batch (from TorchRL's ``RewardSum``)."""
     done = batch.get(("next", "done"))
-    if done.numel() == 1 and not done.item():  # one frame, no episode end: ~2 us instead of ~5
+    if done.numel() == 1 and not done.item():  # one frame, no episode end: no reshape and mask
         return []
     done = done.reshape(-1)
     if not done.any():
         return []
     return batch.get(("next", "episode_reward")).reshape(-1)[done].tolist()
-
-
-# ---------------------------------------------- the TD3 env mid-episode, for checkpoints
-_SCALARS = (bool, int, float, str, type(None))
-
-
-def _gym_layers(gym_env):
-    layers = [gym_env]
-    while hasattr(layers[-1], "env"):
-        layers.append(layers[-1].env)
-    return layers
-
-
-def gym_env_state(gym_env) -> dict:
-    """A gymnasium env's state mid-episode: each wrapper's scalar attributes (``TimeLimit``'s
-    elapsed steps, ``OrderEnforcing``'s reset flag...), the core env's ``np_random`` and arrays,
-    and for MuJoCo envs the full integration state from ``mj_getState``."""
-    layers = _gym_layers(gym_env)
-    core = layers[-1]
-    state = {
-        "wrappers": [{k: v for k, v in vars(w).items() if isinstance(v, _SCALARS) and k != "_saved_kwargs"} for w in layers[:-1]],
-        "core": {k: v.copy() if isinstance(v, np.ndarray) else v for k, v in vars(core).items() if isinstance(v, (np.ndarray, *_SCALARS)) and not k.startswith("_ezpickle")},
-        "np_random": core.np_random.bit_generator.state,
-    }
-    if hasattr(core, "model") and hasattr(core, "data"):
-        import mujoco
-
-        spec = mujoco.mjtState.mjSTATE_INTEGRATION
-        physics = np.empty(mujoco.mj_stateSize(core.model, spec))
-        mujoco.mj_getState(core.model, core.data, physics, spec)
-        state["mujoco"] = physics
-    return state
-
-
-def load_gym_env_state(gym_env, state: dict) -> None:
-    layers = _gym_layers(gym_env)
-    for layer, attributes in zip(layers[:-1], state["wrappers"]):
-        vars(layer).update(attributes)
-    core = layers[-1]
-    vars(core).update(state["core"])
-    core.np_random.bit_generator.state = state["np_random"]
-    if "mujoco" in state:
-        import mujoco
-
-        mujoco.mj_setState(core.model, core.data, np.asarray(state["mujoco"], dtype=np.float64), mujoco.mjtState.mjSTATE_INTEGRATION)
 
 
 class TD3EnvState:

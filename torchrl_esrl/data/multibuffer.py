@@ -114,7 +114,7 @@ class ExactRatioSampler(SamplerEnsemble):
         self._ids_cache: dict = {}
 
     # Each rule below reads the members' sizes once (``len`` of a TorchRL storage is a
-    # compile-guarded call, ~5 us each, and sampling is on the hot path of every TD3 update).
+    # compile-guarded call, and sampling is on the hot path of every TD3 update).
     def _ready_members(self, sizes: Sequence[int]) -> list[bool]:
         need = max(self.min_size, 1)
         return [r > 0 and size >= need for r, size in zip(self.ratio, sizes)]
@@ -129,7 +129,7 @@ class ExactRatioSampler(SamplerEnsemble):
         return tuple(r if ready else 0.0 for r, ready in zip(self.ratio, self._ready_members(sizes)))
 
     def _counts(self, sizes: Sequence[int], batch_size: int) -> tuple[int, ...]:
-        """``ratio_counts`` of the effective ratio, memoised (it sorts in Python, ~10 us a call)."""
+        """``ratio_counts`` of the effective ratio, memoised (it sorts in Python)."""
         key = (int(batch_size), self._effective_ratio(sizes))
         counts = self._counts_cache.get(key)
         if counts is None:
@@ -193,14 +193,15 @@ class ExactRatioStorage(StorageEnsemble):
     ``ReplayBufferEnsemble`` to stack; the MultiBuffer's sub-batches differ in size, and a TorchRL
     loss wants one flat batch. Here each item's member is written under ``source_key`` instead.
 
-    Fast path: when every member is a tensor storage without transform holding the same keys,
-    the items are copied straight from the storages' tensors into one preallocated batch (one
-    ``index_select`` per key and member). Otherwise each member's public ``get`` is called and
-    the parts are concatenated; both give the same batch (``tests/test_buffers.py``).
+    The reference reads each member's items with its public ``get`` and concatenates the parts.
+    With ``direct_reads``, where every member is a tensor storage without transform holding the
+    same keys, the items are copied straight from the storages' tensors into one preallocated
+    batch (one gather per key and member); both give the same batch (``tests/test_multibuffer.py``).
     """
 
-    def __init__(self, *storages, transforms: list | None = None, source_key: str | None = None):
+    def __init__(self, *storages, transforms: list | None = None, source_key: str | None = None, direct_reads: bool = False):
         super().__init__(*storages, transforms=transforms)
+        self.direct_reads = bool(direct_reads)
         self.members = tuple(storages)
         self.member_transforms = tuple(transforms) if transforms is not None else (None,) * len(storages)
         self.source_key = source_key
@@ -208,7 +209,7 @@ class ExactRatioStorage(StorageEnsemble):
 
     def fast_path(self) -> bool:
         """Whether :meth:`get` copies straight from the storages' tensors (else: members' ``get``)."""
-        return self._leaves() is not None
+        return self.direct_reads and self._leaves() is not None
 
     def _leaves(self) -> tuple | None:
         """``(keys, per member: its storage's tensor of each key, None for an empty member)``, or
@@ -249,7 +250,7 @@ class ExactRatioStorage(StorageEnsemble):
         for member, count in zip(members.tolist(), counts.tolist()):
             groups.append((member, index[start : start + count], start))
             start += count
-        leaves = self._leaves()
+        leaves = self._leaves() if self.direct_reads else None
         if leaves is None:
             parts = []
             for member, member_index, _ in groups:
@@ -265,8 +266,7 @@ class ExactRatioStorage(StorageEnsemble):
         keys, tensors, arrays = leaves
         total = buffer_ids.numel()
         outs = {}
-        # CPU storages: numpy's take (~1-2 us a call for a few hundred rows, against ~4 us for
-        # torch.index_select); the same rows, copied exactly.
+        # CPU storages: numpy's take, without torch.index_select's dispatch; the same rows, copied exactly.
         member_indices = None if arrays is None else numpy_views(member_index for _, member_index, _ in groups)
         for position, key in enumerate(keys):
             reference = tensors[groups[0][0]][position]
@@ -302,9 +302,11 @@ class MultiBuffer(ReplayBufferEnsemble):
         source_key: key of the per-item buffer index in sampled batches.
         device: device of the buffers' storages (when built here).
         direct_writes: write each batch into the storage one tensor copy per key where the
-            buffer is the plain layout of :func:`make_buffer` (what ``extend`` writes: one
-            transition in ~0.05 ms instead of ~0.24; ``torchrl_esrl.torchrl_private.append_rows``);
-            False: TorchRL's ``extend`` for every write.
+            buffer is the plain layout of :func:`make_buffer` (what ``extend`` writes,
+            ``torchrl_esrl.torchrl_private.append_rows``); False (the reference): TorchRL's
+            ``extend`` for every write.
+        direct_reads: gather sampled items straight from the storages' tensors
+            (:class:`ExactRatioStorage`); False (the reference): each buffer's storage ``get``.
     """
 
     def __init__(
@@ -320,7 +322,8 @@ class MultiBuffer(ReplayBufferEnsemble):
         default: str = "noisy",
         source_key: str = "buffer",
         device: str | torch.device = "cpu",
-        direct_writes: bool = True,
+        direct_writes: bool = False,
+        direct_reads: bool = False,
     ):
         names = tuple(names)
         ratio = validate_ratio(ratio) if len(names) == 3 else tuple(float(r) for r in ratio)
@@ -336,7 +339,7 @@ class MultiBuffer(ReplayBufferEnsemble):
         super().__init__(*members, batch_size=int(batch_size), collate_fn=stack)
         # Swap in the exact-ratio sampler and the flat-batch storage ensemble over the same members.
         self.set_sampler(ExactRatioSampler(*(b.sampler for b in members), ratio=ratio, min_size=min_size, renormalize=renormalize))
-        storage = ExactRatioStorage(*(b.storage for b in members), transforms=[b.transform for b in members], source_key=source_key)
+        storage = ExactRatioStorage(*(b.storage for b in members), transforms=[b.transform for b in members], source_key=source_key, direct_reads=direct_reads)
         self.set_storage(storage, collate_fn=stack)
         storage.attach(self)
         self.set_writer(self.writer)  # registers the writers with the new storage ensemble

@@ -2,24 +2,30 @@
 
 The actor is shared by both halves of the algorithm: TD3 trains it by gradient
 descent, OpenAI-ES searches over its *flat parameter vector*. `flat_parameters`
-and `load_flat_parameters` are the bridge between the two views, and
-`PopulationActor` evaluates many flat vectors at once (one batched forward for
-a whole ES population).
+and `load_flat_parameters` are the bridge between the two views. Two classes evaluate
+many flat vectors at once: `ModulePopulation` (the reference: the actor module itself,
+through ``torch.func.functional_call``) and `PopulationActor` (one batched numpy forward
+for a whole ES population, for the plain MLP actors of `make_actor`).
 """
 from __future__ import annotations
 
+import threading
 from dataclasses import dataclass
 
 import numpy as np
 import torch
 from threadpoolctl import ThreadpoolController
 from tensordict.nn import TensorDictModule, TensorDictSequential
+from tensordict import TensorDict
 from torch import nn
+from torch.func import functional_call
 from torch.nn.utils import parameters_to_vector, vector_to_parameters
 from torchrl.data import TensorSpec
 from torchrl.modules import MLP, TanhModule, ValueOperator
 
-ACTIVATIONS = {"tanh": nn.Tanh, "relu": nn.ReLU}
+from torchrl_esrl.threads import torch_threads
+
+ACTIVATIONS = {"tanh": nn.Tanh, "relu": nn.ReLU, "elu": nn.ELU}  # the fast pieces compute tanh and ReLU; others hand over to the reference
 
 
 def make_actor(
@@ -107,32 +113,116 @@ class Mirrored:
         return torch.equal(params[0], self.center + self.offsets[0]) and torch.equal(params[k], self.center - self.offsets[0])
 
 
+class ModulePopulation:
+    """The reference evaluation of ES members: the very actor module TD3 trains, run with each
+    member's flat parameters through ``torch.func.functional_call`` (paper, Section 3: ES searches
+    over the actor's flat parameters).
+
+    ``actions = population(params[P, D], observations[P, obs_dim])``: member ``p`` acts as
+    ``actor`` would after ``load_flat_parameters(actor, params[p])``, on a batch of one
+    observation, whatever the actor's layers. The interface of :class:`PopulationActor`
+    (``split``, ``num_parameters``), without its mirrored-pairs forward.
+    """
+
+    mirrored_pairs = False  # evaluates the flat rows only
+
+    def __init__(self, actor: nn.Module):
+        self.actor = actor
+        # functional_call swaps the members' tensors into the one module: one forward at a time
+        # (the batched backends call it from several worker threads).
+        self.lock = threading.Lock()
+        named = list(actor.named_parameters())
+        self.names = [name for name, _ in named]
+        self.shapes = [p.shape for _, p in named]
+        self.sizes = [p.numel() for _, p in named]
+        self.num_parameters = sum(self.sizes)
+
+    def split(self, params: torch.Tensor) -> list[dict[str, torch.Tensor]]:
+        """Per member, its parameters by name: views of its row, in ``actor.parameters()`` order
+        (the layout of :func:`flat_parameters`)."""
+        return [
+            {name: piece.view(shape) for name, piece, shape in zip(self.names, row.split(self.sizes), self.shapes)}
+            for row in params.detach()
+        ]
+
+    @torch.no_grad()
+    def __call__(self, params: torch.Tensor, observations: torch.Tensor, layers=None) -> torch.Tensor:
+        """Actions [P, act]; on one torch thread, as the batched forward runs (one observation per
+        call: threads would only wait on each other, and on the simulator's)."""
+        layers = self.split(params) if layers is None else layers
+        with self.lock, torch_threads(1):
+            return self._forward(layers, observations)
+
+    def __getstate__(self) -> dict:  # picklable for Ray workers: a lock of their own
+        return {k: v for k, v in self.__dict__.items() if k != "lock"}
+
+    def __setstate__(self, state: dict) -> None:
+        self.__dict__.update(state, lock=threading.Lock())
+
+    def _forward(self, layers, observations: torch.Tensor) -> torch.Tensor:
+        actions = [
+            functional_call(self.actor, member, (TensorDict(observation=observations[p : p + 1], batch_size=[1]),)).get("action")
+            for p, member in enumerate(layers)
+        ]
+        return torch.cat(actions)
+
+
+def _plain_actor_layers(actor) -> list[tuple[int, int]] | None:
+    """``(out_features, in_features)`` of each Linear of a :func:`make_actor` actor whose MLP is
+    Linear layers with one activation type (tanh or ReLU) between them and whose ``TanhModule``
+    does not clamp, or None for any other actor."""
+    if not isinstance(actor, TensorDictSequential) or len(actor.module) != 2:
+        return None
+    first, tanh_module = actor.module
+    mlp = getattr(first, "module", None)
+    if (
+        not isinstance(tanh_module, TanhModule) or tanh_module.clamp or not isinstance(mlp, nn.Sequential)
+        or list(first.in_keys) != ["observation"] or list(tanh_module.out_keys) != ["action"]
+        or isinstance(getattr(mlp, "out_features", None), (tuple, list, torch.Size))  # a reshaped output
+    ):
+        return None
+    children = list(mlp)
+    linears, activations = children[0::2], children[1::2]
+    if (
+        len(children) % 2 != 1
+        or not all(type(m) is nn.Linear for m in linears)
+        or len({type(m) for m in activations}) > 1
+        or not all(type(m) in (nn.Tanh, nn.ReLU) for m in activations)
+    ):
+        return None
+    return [(m.out_features, m.in_features) for m in linears]
+
+
 class PopulationActor:
-    """Evaluates P actors of one architecture at once from their stacked flat parameters.
+    """Evaluates P actors of one architecture at once from their stacked flat parameters
+    (the fast counterpart of :class:`ModulePopulation`).
 
     ``actions = population_actor(params[P, D], observations[P, obs_dim])`` computes, for every
     member p, what ``make_actor`` would compute with ``load_flat_parameters(params[p])`` (equal
     up to float32 rounding), as one ``numpy.einsum("poi,pi->po")`` per layer over views of the
     flat vectors. Written by hand because no library call fits this shape well: each member
     multiplies its own weight matrix by one observation, so a generation is P matrix-vector
-    products that read all P x D parameters per step. Measured on the 2-core machine (120
-    members, HalfCheetah sizes, one thread): this einsum 2.4 ms, ``torch.baddbmm`` per layer
-    5.5 ms, ``numpy.matmul`` 3.7 ms, ``vmap(functional_call)`` and a loop over modules slower
-    still (``benchmarks/es_population.py``; ``shared/notes/stack-facts.md``). Every member's
+    products that read all P x D parameters per step (the alternatives measured:
+    ``benchmarks/es_population.py``, docs/performance.md). Every member's
     arithmetic is its own, so the forward over any contiguous block of members gives them
     bit for bit the actions of the forward over all P (``tests/test_networks.py``).
     """
 
+    mirrored_pairs = True  # :meth:`mirrored` evaluates OpenAI-ES's pairs
+
+    @staticmethod
+    def supports(actor) -> bool:
+        """Whether this forward computes what ``actor`` computes: a :func:`make_actor` MLP of
+        Linear layers with tanh or ReLU between them, squashed by a non-clamping ``TanhModule``."""
+        return _plain_actor_layers(actor) is not None
+
     def __init__(self, actor: TensorDictSequential):
-        mlp = actor[0].module
-        tanh_module = actor[1]
-        self.layers: list[tuple[int, int]] = []  # (out_features, in_features) per Linear
-        self.activation: type[nn.Module] | None = None
-        for module in mlp:
-            if isinstance(module, nn.Linear):
-                self.layers.append((module.out_features, module.in_features))
-            elif self.activation is None:
-                self.activation = type(module)
+        layers = _plain_actor_layers(actor)
+        if layers is None:
+            raise ValueError(f"PopulationActor computes Linear layers with tanh or ReLU between them only; this actor differs ({_describe(actor)}): use ModulePopulation")
+        mlp, tanh_module = actor[0].module, actor[1]
+        self.layers: list[tuple[int, int]] = layers  # (out_features, in_features) per Linear
+        self.activation: type[nn.Module] | None = type(mlp[1]) if len(mlp) > 1 else None
         self.act = np.tanh if self.activation is nn.Tanh else _relu
         self.low = tanh_module.action_low.detach().numpy().astype(np.float32)
         self.high = tanh_module.action_high.detach().numpy().astype(np.float32)
@@ -174,9 +264,7 @@ class PopulationActor:
         the center (which stays in cache) and one with the pair's offsets, which are read once for
         both members, half of what :meth:`__call__` reads. Every pair gets products of the same
         shapes, so a block of pairs gets bit for bit the actions of all K (one product over all
-        2K observations would not: BLAS picks its kernel by size). Measured on the 2-core machine
-        (60 pairs, HalfCheetah sizes, one thread, in cache): 0.8-1.3 ms against 1.6-1.7 ms for
-        :meth:`__call__` on the same members. The same actions up to float32 rounding, not bit for
+        2K observations would not: BLAS picks its kernel by size). The same actions up to float32 rounding, not bit for
         bit: the sums are split differently (tests/test_networks.py). Its matrix products go to
         numpy's BLAS: callers run it under :func:`one_blas_thread`.
         """
@@ -210,6 +298,11 @@ def one_blas_thread():
     if not _BLAS:
         _BLAS.append(ThreadpoolController().select(internal_api="openblas"))
     return _BLAS[0].limit(limits=1)
+
+
+def _describe(actor) -> str:
+    """The actor's modules in one line, for the refusal messages of the hand-written forwards."""
+    return " ".join(str(actor).split())[:200]
 
 
 def _relu(x: np.ndarray) -> np.ndarray:

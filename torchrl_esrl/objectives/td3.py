@@ -17,7 +17,7 @@ from torchrl.modules import AdditiveGaussianModule
 from torchrl.objectives import SoftUpdate, TD3Loss
 
 from torchrl_esrl.modules.networks import squash
-from torchrl_esrl.torchrl_private import detached_qvalue_params, fused_adam_step, loss_priority_weight, reduce_loss, soft_update_tensors
+from torchrl_esrl.torchrl_private import detached_qvalue_params, foreach_lerp_, fused_adam_step, loss_priority_weight, reduce_loss, reweights_or_masks, soft_update_tensors
 
 
 class TD3LossQ1Actor(TD3Loss):
@@ -64,9 +64,8 @@ def _plain_mlp(module: nn.Module):
 class _NumpyTanh(torch.autograd.Function):
     """``tanh`` computed by numpy, with torch's own ``tanh_backward`` (``grad * (1 - y^2)``).
 
-    Written by hand because torch 2.13's CPU ``tanh`` is the slow op of this update: ~170 us per
-    256x256 float32 call on one thread against ~25 us for ``numpy.tanh`` (its AVX-512 kernel),
-    measured on the 2-core machine (docs/performance.md). The two agree to one float32 rounding
+    Written by hand because torch 2.13's CPU ``tanh`` measured slower than ``numpy.tanh`` on
+    the update's 256x256 float32 activations (docs/performance.md). The two agree to one float32 rounding
     step; tests/test_td3.py compares the loss and its gradients with stock ``TD3Loss``.
     """
 
@@ -83,7 +82,7 @@ class _NumpyTanh(torch.autograd.Function):
 
 
 def _tanh(x: torch.Tensor) -> torch.Tensor:
-    """Hidden ``tanh`` of the fused losses: numpy's kernel, in place when no gradient is needed
+    """Hidden ``tanh`` of the hand-written losses: numpy's kernel, in place when no gradient is needed
     (``x`` is a fresh layer output there)."""
     if x.device.type != "cpu" or x.dtype not in (torch.float32, torch.float64):
         return torch.tanh(x)
@@ -99,9 +98,10 @@ _ACTIVATIONS = {nn.Tanh: _tanh, nn.ReLU: torch.relu}
 _ACTIVATION_BACKWARD = {_tanh: torch.ops.aten.tanh_backward, torch.relu: lambda grad, out: torch.ops.aten.threshold_backward(grad, out, 0)}
 
 
-class FusedTD3Loss(TD3LossQ1Actor):
-    """:class:`TD3LossQ1Actor` whose ``value_loss`` runs the twin critics as one stacked network
-    and whose losses use the parameters directly rather than through module swaps.
+class ManualGradTD3Loss(TD3LossQ1Actor):
+    """TorchRL's ``TD3Loss`` (through :class:`TD3LossQ1Actor`) whose losses and gradients are
+    written by hand: ``value_loss_backward`` and ``actor_loss_backward`` compute each loss and set
+    its gradients by the chain rule, without autograd, and :class:`TD3` calls them.
 
     ``TD3Loss.value_loss`` evaluates the two critics (and their targets) with ``vmap`` over a
     TensorDict-expanded batch and the target actor through a parameter swap into the module;
@@ -113,15 +113,16 @@ class FusedTD3Loss(TD3LossQ1Actor):
     ``r + gamma * (1 - terminated) * Q'``, squared error summed over the critics and averaged
     over the batch (tests/test_td3.py compares losses, gradients and targets after several
     updates with stock ``TD3Loss``). ``actor_loss`` is :class:`TD3LossQ1Actor`'s, written the
-    same way. Networks of another shape, other value estimators, losses or reductions, or
-    prioritised weights fall back to the parent's code.
+    same way. Networks of another shape or activation, other value estimators, losses or
+    reductions, prioritised weights or loss masks, and a subclass's own ``value_loss`` or
+    ``actor_loss``, go to the parent's code and autograd.
     """
 
-    def _fused_layout(self):
+    def _manual_layout(self):
         """The networks as lists of ``(weight, bias, activation)`` tensors, built once (TorchRL
         keeps the parameters in place for the life of the loss, as :class:`ForeachSoftUpdate`
         relies on too), or False when the networks are not the plain MLPs this path handles."""
-        layout = self.__dict__.get("_fused")
+        layout = self.__dict__.get("_manual")
         if layout is None:
             layout = False
             actor, critic = self.actor_network, self.qvalue_network
@@ -138,17 +139,23 @@ class FusedTD3Loss(TD3LossQ1Actor):
                 actor_mlp = _plain_mlp(actor.module[0].module)
                 critic_mlp = _plain_mlp(getattr(critic, "module", None))
                 if actor_mlp and critic_mlp and list(critic.in_keys) == ["observation", "action"] and len(critic.out_keys) == 1:
-                    layout = _FusedLayout(self, actor_mlp, critic_mlp)
-            self.__dict__["_fused"] = layout
+                    layout = _ManualGradLayout(self, actor_mlp, critic_mlp)
+            self.__dict__["_manual"] = layout
         return layout
 
-    def _fused_layout_for(self, tensordict):
-        """:meth:`_fused_layout`, or False for a batch with prioritised weights (TorchRL's code handles those)."""
-        return self._fused_layout() if loss_priority_weight(self, tensordict) is None else False
+    def _manual_layout_for(self, tensordict):
+        """:meth:`_manual_layout`, or False for a batch with prioritised weights or loss masks
+        (TorchRL's code and autograd handle those)."""
+        return False if reweights_or_masks(self, tensordict) else self._manual_layout()
+
+    def _inherits(self, name: str) -> bool:
+        """Whether ``name`` (``value_loss``, ``actor_loss``) is this class's own: a subclass that
+        overrides it gets its own loss, through autograd, not the hand-written gradient of this one."""
+        return getattr(type(self), name) is getattr(ManualGradTD3Loss, name)
 
     def value_loss(self, tensordict) -> tuple[torch.Tensor, dict]:
         """TD3Loss's critic loss and its metadata tensors (TD3.update uses :meth:`value_loss_backward`)."""
-        layout = self._fused_layout_for(tensordict)
+        layout = self._manual_layout_for(tensordict)
         if not layout:
             return super().value_loss(tensordict)
         action = tensordict.get(self.tensor_keys.action)
@@ -165,16 +172,16 @@ class FusedTD3Loss(TD3LossQ1Actor):
     def value_loss_backward(self, tensordict) -> torch.Tensor | None:
         """``value_loss`` and its backward in one pass, without autograd: sets the critics'
         ``.grad`` (as ``zero_grad(set_to_none=True)`` then ``backward()`` would) and returns the
-        loss. None where the fused path does not apply (the caller then uses ``value_loss``).
+        loss. None where the hand-written path does not apply (the caller then uses ``value_loss``).
 
-        Written by hand because autograd's bookkeeping (~20 graph nodes for the stacked critics,
-        ~15 us each on this CPU) is ~5% of a TD3 update of the paper's networks; the gradient is
+        Written by hand because autograd's graph bookkeeping around these small matmuls is a
+        share of a TD3 update of the paper's networks (docs/performance.md, "td3_loss"); the gradient is
         the chain rule through the same ``bmm`` layers, layer by layer:
         ``dW = g^T x``, ``db = sum_batch g``, ``g <- (g W) * act'``, from
         ``g = dL/dQ = 2 (Q - y) / B``. tests/test_td3.py compares loss and gradients with
         stock ``TD3Loss.value_loss`` + ``backward``.
         """
-        layout = self._fused_layout_for(tensordict)
+        layout = self._manual_layout_for(tensordict) if self._inherits("value_loss") else False
         if not layout:
             return None
         action = tensordict.get(self.tensor_keys.action)
@@ -204,7 +211,7 @@ class FusedTD3Loss(TD3LossQ1Actor):
     def actor_loss(self, tensordict) -> tuple[torch.Tensor, dict]:
         """``-Q_1(s, pi(s)).mean()`` as :class:`TD3LossQ1Actor`, with the actor and the first
         critic's (detached) parameters used directly instead of swapped into the modules."""
-        layout = self._fused_layout_for(tensordict)
+        layout = self._manual_layout_for(tensordict)
         if not layout:
             return super().actor_loss(tensordict)
         observation = tensordict.get("observation")
@@ -214,12 +221,12 @@ class FusedTD3Loss(TD3LossQ1Actor):
     def actor_loss_backward(self, tensordict) -> torch.Tensor | None:
         """``actor_loss`` and its backward in one pass, without autograd, as
         :meth:`value_loss_backward`: sets the actor's ``.grad`` and returns the loss (None where
-        the fused path does not apply). From ``dL/dQ_1 = -1/B`` the gradient runs back through the
+        the hand-written path does not apply). From ``dL/dQ_1 = -1/B`` the gradient runs back through the
         first critic (its weights only carry it: they are not trained by this loss) to the action,
         through ``TanhModule``'s squashing, then through the actor's layers.
         tests/test_td3.py compares loss and gradients with stock ``TD3Loss.actor_loss``.
         """
-        layout = self._fused_layout_for(tensordict)
+        layout = self._manual_layout_for(tensordict) if self._inherits("actor_loss") else False
         if not layout:
             return None
         tanh_module = self.actor_network.module[1]
@@ -288,8 +295,8 @@ def _backward(layers, inputs: list, grad: torch.Tensor, parameters: bool = True)
     return grad
 
 
-class _FusedLayout:
-    """The tensors :class:`FusedTD3Loss` computes with, looked up once instead of ~30 TensorDict
+class _ManualGradLayout:
+    """The tensors :class:`ManualGradTD3Loss` computes with, looked up once instead of ~30 TensorDict
     lookups per update: ``(weight, bias, activation)`` per layer of the online and target actor
     and twin critics, the first critic's detached weights for the actor loss, and
     the action bounds of both actors."""
@@ -311,11 +318,10 @@ class _FusedLayout:
 
 
 class ForeachSoftUpdate(SoftUpdate):
-    """``SoftUpdate`` with one ``torch._foreach_lerp_`` over all target tensors.
+    """``SoftUpdate`` with one foreach ``lerp_`` over all target tensors.
 
     ``SoftUpdate.step`` looks the targets up through the loss module and calls ``lerp_`` once per
-    tensor (14 tensors here, ~0.7 ms of Python a step measured against ~0.07 ms for one foreach
-    call); the arithmetic is the same ``target.lerp_(source, tau)``, so results are identical
+    tensor; the arithmetic is the same ``target.lerp_(source, tau)``, so results are identical
     (tests/test_td3.py). The source/target tensor lists are built once: TorchRL keeps the
     parameters in place for the life of the loss.
     """
@@ -326,7 +332,7 @@ class ForeachSoftUpdate(SoftUpdate):
         pairs = self.__dict__.get("_pairs")
         if pairs is None:
             pairs = self.__dict__["_pairs"] = soft_update_tensors(self)
-        torch._foreach_lerp_(pairs[1], pairs[0], 1 - self.eps)
+        foreach_lerp_(pairs[1], pairs[0], 1 - self.eps)
 
 
 class TD3:
@@ -343,18 +349,19 @@ class TD3:
         policy_delay: critic updates per actor/target update.
         exploration_noise: std of the Gaussian noise added to actions when acting (paper: 0.1).
         loss_function: critic regression loss (``"l2"`` as in Fujimoto's TD3).
-        fast: the tuned configuration measured by ``benchmarks/td3_update.py`` (default):
-            :class:`FusedTD3Loss` (stacked twin critics, actor loss through the first critic
-            only, loss and gradients of both steps in one pass without autograd),
-            :class:`ForeachSoftUpdate` and fused Adam. ``False`` gives TorchRL's stock
-            ``TD3Loss`` + ``SoftUpdate`` + default Adam; both compute TD3's math (same losses,
-            gradients and target updates, tests/test_td3.py).
-        optimizer_impl: ``"fused"``, ``"foreach"`` or ``"default"`` (torch's choice, a per-tensor
-            loop on CPU); None follows ``fast``.
+        loss_class: the ``TD3Loss`` class (or a subclass) to build. Stock ``TD3Loss`` (the
+            reference, trained by autograd) or :class:`ManualGradTD3Loss`, whose
+            ``value_loss_backward``/``actor_loss_backward`` give the same losses and gradients
+            without autograd; :meth:`update` uses those methods where the loss has them.
+        target_update_class: ``SoftUpdate`` (the reference) or :class:`ForeachSoftUpdate`.
+        optimizer_impl: ``"default"`` (torch's ``Adam`` as constructed by default, the
+            reference), ``"foreach"``, or ``"fused"`` (fused Adam, stepped by one direct kernel
+            call: :func:`~torchrl_esrl.torchrl_private.fused_adam_step`).
         num_threads: torch threads while :func:`~torchrl_esrl.algorithm.td3_phase.td3_phase` runs
-            (None: leave the process's count). One thread measured fastest for these 256-wide
-            networks when OpenMP's wait policy is ``PASSIVE``, where every multi-threaded op pays
-            a thread wake-up (docs/performance.md).
+            (None: leave the process's count; docs/performance.md).
+
+    The reference is TorchRL's stock TD3 (``TD3Loss``, ``SoftUpdate``, ``Adam``);
+    :func:`torchrl_esrl.run.factories.make_td3` picks the fast pieces.
     """
 
     def __init__(
@@ -370,14 +377,14 @@ class TD3:
         policy_delay: int = 2,
         exploration_noise: float = 0.1,
         loss_function: str = "l2",
-        fast: bool = True,
-        optimizer_impl: str | None = None,
+        loss_class: type[TD3Loss] = TD3Loss,
+        target_update_class: type[SoftUpdate] = SoftUpdate,
+        optimizer_impl: str = "default",
         num_threads: int | None = None,
     ):
         self.actor = actor
         self.action_spec = action_spec
-        self.fast = bool(fast)
-        self.loss = (FusedTD3Loss if self.fast else TD3Loss)(
+        self.loss = loss_class(
             actor_network=actor,
             qvalue_network=critic,
             action_spec=action_spec,
@@ -389,12 +396,12 @@ class TD3:
             delay_qvalue=True,
         )
         self.loss.make_value_estimator(gamma=gamma)
-        self.target_update = (ForeachSoftUpdate if self.fast else SoftUpdate)(self.loss, tau=tau)
+        self.target_update = target_update_class(self.loss, tau=tau)
         # The loss shares storage with `actor`; the two critics live in the loss's stacked params.
-        impl = optimizer_impl or ("fused" if self.fast else "default")
-        if impl not in ("fused", "foreach", "default"):
-            raise ValueError(f"optimizer_impl must be fused, foreach or default, got {impl!r}")
-        options = {"fused": {"fused": True}, "foreach": {"foreach": True}, "default": {}}[impl]
+        if optimizer_impl not in ("fused", "foreach", "default"):
+            raise ValueError(f"optimizer_impl must be fused, foreach or default, got {optimizer_impl!r}")
+        self.optimizer_impl = optimizer_impl
+        options = {"fused": {"fused": True}, "foreach": {"foreach": True}, "default": {}}[optimizer_impl]
         self.actor_optimizer = torch.optim.Adam(list(actor.parameters()), lr=lr, **options)
         self.critic_optimizer = torch.optim.Adam(list(self.loss.qvalue_network_params.values(True, True)), lr=lr, **options)
         self.policy_delay = int(policy_delay)
@@ -408,7 +415,8 @@ class TD3:
     def update(self, batch: TensorDictBase) -> dict[str, float]:
         """One TD3 step: critic update; every ``policy_delay`` steps actor and target updates."""
         self.critic_optimizer.zero_grad(set_to_none=True)
-        critic_loss = self.loss.value_loss_backward(batch) if self.fast else None  # loss and gradients in one pass
+        manual = getattr(self.loss, "value_loss_backward", None)  # loss and gradients in one pass, where the loss has it
+        critic_loss = manual(batch) if manual is not None else None
         if critic_loss is None:
             critic_loss, _ = self.loss.value_loss(batch)
             critic_loss.backward()
@@ -419,7 +427,8 @@ class TD3:
         self.updates += 1
         if self.updates % self.policy_delay == 0:
             self.actor_optimizer.zero_grad(set_to_none=True)
-            actor_loss = self.loss.actor_loss_backward(batch) if self.fast else None
+            manual = getattr(self.loss, "actor_loss_backward", None)
+            actor_loss = manual(batch) if manual is not None else None
             if actor_loss is None:
                 actor_loss, _ = self.loss.actor_loss(batch)
                 actor_loss.backward()
@@ -431,8 +440,8 @@ class TD3:
         return out
 
     def _step(self, optimizer: torch.optim.Adam) -> None:
-        """``optimizer.step()``; fused Adam as one direct kernel call (same arithmetic, less Python)."""
-        fused_adam_step(optimizer) if self.fast else optimizer.step()
+        """``optimizer.step()``; fused Adam as one direct kernel call (same arithmetic)."""
+        fused_adam_step(optimizer) if self.optimizer_impl == "fused" else optimizer.step()
 
     def state_dict(self) -> dict:
         return {

@@ -26,6 +26,18 @@ LOGGER_PACKAGES = {"": None, "csv": None, "tensorboard": "tensorboard", "wandb":
 SEED_LIMIT = 2**31 - 2000  # numpy seeds are < 2**32; the recipes add up to 1000 for their streams
 
 
+# Keys that were renamed: old name -> what to write instead (the schema keeps the old name, unset, so
+# that a config using it reaches this check instead of Hydra's unknown-key error).
+RENAMED = {"td3.fast": "implementation (implementation=fast, or implementation=reference for td3.fast=false)"}
+
+
+def _get_or_none(cfg, field: str):
+    try:
+        return _get(cfg, field)
+    except (KeyError, AttributeError):
+        return None
+
+
 def _get(cfg, field: str):
     node = cfg
     for part in field.split("."):
@@ -78,8 +90,13 @@ def validate_config(cfg) -> None:
     from torchrl_esrl.data.multibuffer import validate_ratio
     from torchrl_esrl.envs import resolve_env_id
     from torchrl_esrl.modules.networks import ACTIVATIONS
+    from torchrl_esrl.run.factories import IMPLEMENTATIONS
 
+    for old, new in RENAMED.items():
+        if _get_or_none(cfg, old) is not None:
+            raise ConfigError(f"{old}: renamed to {new}")
     _number(cfg, "seed", low=0, high=SEED_LIMIT, integer=True)
+    _choice(cfg, "implementation", IMPLEMENTATIONS)
     if not str(cfg.experiment_name).strip():
         raise ConfigError("experiment_name: '' is invalid (allowed: a non-empty name)")
     validate_device(cfg.device)

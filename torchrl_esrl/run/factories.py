@@ -2,27 +2,61 @@
 
 Each one builds one thing of the paper from its section of the config, in the style of
 TorchRL's ``sota-implementations``; recipes stay a readable transcription of Algorithm 1.
+
+This module is the one reader of the ``implementation`` key: ``reference`` builds stock
+TorchRL end to end (``TD3Loss`` with autograd, ``SoftUpdate``, ``torch.optim.Adam``, TorchRL's
+``Collector`` over ``GymEnv``, the buffers' own ``extend`` and storage reads, and an ES
+evaluation that runs the actor module through ``functional_call`` in gymnasium); ``fast``
+swaps in the pieces of :data:`FAST_PIECES`, each a class beside the reference it replaces,
+each proven equal to it (docs/performance.md). A fast piece that cannot compute exactly what
+its reference would (another layer, transform or loss) hands over to the reference.
 """
 from __future__ import annotations
 
 import copy
+from collections.abc import Collection
 
 import torch
 from omegaconf import DictConfig
+from torchrl.objectives import SoftUpdate, TD3Loss
 
 from torchrl_esrl.data.multibuffer import MultiBuffer
-from torchrl_esrl.collectors.backends import default_backend
-from torchrl_esrl.envs import make_env, resolve_env_id
+from torchrl_esrl.envs import make_env
 from torchrl_esrl.es.openes import OpenES
+from torchrl_esrl.collectors.backends import default_backend
 from torchrl_esrl.collectors.es_collector import ESCollector
-from torchrl_esrl.modules.networks import flat_parameters, make_actor, make_critic
+from torchrl_esrl.modules.networks import ModulePopulation, PopulationActor, flat_parameters, make_actor, make_critic
 from torchrl_esrl.algorithm.es_phase import ESPhase
 from torchrl_esrl.modules.warmup import RandomWarmup
 from torchrl_esrl.algorithm.overwrite import OverwriteRule
-from torchrl_esrl.collectors.td3_collector import make_td3_collector
-from torchrl_esrl.objectives.td3 import TD3
+from torchrl_esrl.collectors.td3_collector import GymTD3Collector, make_td3_collector
+from torchrl_esrl.objectives.td3 import TD3, ForeachSoftUpdate, ManualGradTD3Loss
 from torchrl_esrl.data.threshold import Threshold
 from torchrl_esrl.threads import TD3_THREADS, job_cores
+
+IMPLEMENTATIONS = ("fast", "reference")
+# Each fast piece, and the reference it replaces (docs/performance.md has the table):
+FAST_PIECES = {
+    "td3_loss": "ManualGradTD3Loss (gradients without autograd) <- TorchRL TD3Loss + autograd",
+    "soft_update": "ForeachSoftUpdate <- TorchRL SoftUpdate",
+    "adam": "fused Adam, one kernel call <- torch.optim.Adam",
+    "td3_collector": "GymTD3Collector <- TorchRL Collector over GymEnv",
+    "buffer_writes": "MultiBuffer(direct_writes) <- TensorDictReplayBuffer.extend",
+    "buffer_reads": "MultiBuffer(direct_reads) <- each buffer's storage get",
+    "es_forward": "PopulationActor (batched, mirrored pairs) <- ModulePopulation (functional_call)",
+    "es_physics": "mujoco_batch backend <- gym backend (es.backend=auto)",
+}
+
+
+def fast_pieces(cfg: DictConfig) -> frozenset[str]:
+    """The fast pieces the config asks for: all of :data:`FAST_PIECES` with
+    ``implementation=fast``, none with ``implementation=reference``. Every factory below takes
+    ``pieces`` (this, unless given: ``benchmarks.iteration --ablation`` switches one back)."""
+    return frozenset(FAST_PIECES) if cfg.implementation == "fast" else frozenset()
+
+
+def _pieces(cfg: DictConfig, pieces: Collection[str] | None) -> frozenset[str]:
+    return fast_pieces(cfg) if pieces is None else frozenset(pieces)
 
 
 def make_train_env(cfg: DictConfig):
@@ -47,10 +81,10 @@ def cpu_actor(actor):
     return copy.deepcopy(actor).to("cpu")
 
 
-def make_td3(cfg: DictConfig, actor, critic, action_spec) -> TD3:
+def make_td3(cfg: DictConfig, actor, critic, action_spec, pieces: Collection[str] | None = None) -> TD3:
     """TD3; with ``td3.random_frames`` > 0 its behaviour policy acts uniformly at random for that
     many frames first (Fujimoto's ``start_timesteps``, :class:`RandomWarmup`)."""
-    c = cfg.td3
+    c, fast = cfg.td3, _pieces(cfg, pieces)
     td3 = TD3(
         actor,
         critic,
@@ -63,7 +97,9 @@ def make_td3(cfg: DictConfig, actor, critic, action_spec) -> TD3:
         policy_delay=c.policy_delay,
         exploration_noise=c.exploration_noise,
         loss_function=c.loss_function,
-        fast=c.fast,
+        loss_class=ManualGradTD3Loss if "td3_loss" in fast else TD3Loss,  # it hands over to TD3Loss's autograd where it cannot compute exactly
+        target_update_class=ForeachSoftUpdate if "soft_update" in fast else SoftUpdate,
+        optimizer_impl="fused" if "adam" in fast else "default",
         num_threads=c.num_threads if c.num_threads is not None else min(TD3_THREADS, job_cores()),
     )
     if c.random_frames > 0:
@@ -71,27 +107,35 @@ def make_td3(cfg: DictConfig, actor, critic, action_spec) -> TD3:
     return td3
 
 
-def make_td3_batches(cfg: DictConfig, env, td3: TD3):
-    """The TD3 collector and an iterator over it that lives across iterations (``td3.fast``:
-    :class:`~torchrl_esrl.collectors.td3_collector.GymTD3Collector`, else TorchRL's ``Collector``)."""
-    collector = make_td3_collector(env, td3, cfg.td3.frames_per_batch, fast=cfg.td3.fast, device=cfg.device)
+def make_frame_batches(cfg: DictConfig, env, td3: TD3, pieces: Collection[str] | None = None):
+    """The TD3 collector and an iterator over it that lives across iterations:
+    :class:`~torchrl_esrl.collectors.td3_collector.GymTD3Collector` where it steps exactly what
+    TorchRL's ``Collector`` would (make_env's env, make_actor's actor), else the ``Collector``."""
+    if "td3_collector" in _pieces(cfg, pieces) and GymTD3Collector.supports(env, td3, cfg.device):
+        collector = GymTD3Collector(env, td3, cfg.td3.frames_per_batch)
+    else:
+        with torch.random.fork_rng():  # the Collector probes the policy once: its noise draw stays off the run's stream
+            collector = make_td3_collector(env, td3, cfg.td3.frames_per_batch, device=cfg.device)
     if isinstance(td3.exploration_policy, RandomWarmup):
         td3.exploration_policy.reset()  # undo the Collector's probing call: the warm-up starts at frame 0
     return collector, iter(collector)
 
 
-def make_multibuffer(cfg: DictConfig) -> MultiBuffer:
+def make_multibuffer(cfg: DictConfig, pieces: Collection[str] | None = None, one_buffer: bool = False) -> MultiBuffer:
     """The good/bad/noisy MultiBuffer; ``buffer.mode=shared`` gives one buffer for everything
-    (ERL-style ablation: ``ratio=(0, 0, 1)``, ES transitions are written to it too)."""
-    c = cfg.buffer
-    shared = c.mode == "shared"
+    (ERL-style ablation: ``ratio=(0, 0, 1)``, ES transitions are written to it too), as does
+    ``one_buffer`` (the TD3 and CEM-RL baselines' replay buffer)."""
+    c, fast = cfg.buffer, _pieces(cfg, pieces)
+    shared = one_buffer or c.mode == "shared"
     return MultiBuffer(
         ratio=[0.0, 0.0, 1.0] if shared else list(c.ratio),
         capacity=c.capacity,
         batch_size=c.batch_size,
         min_size=c.min_size,
-        renormalize=c.renormalize,
+        renormalize=c.renormalize and not one_buffer,
         device=cfg.device,
+        direct_writes="buffer_writes" in fast,
+        direct_reads="buffer_reads" in fast,
     )
 
 
@@ -128,19 +172,45 @@ def make_cem(cfg: DictConfig, actor):
     )
 
 
-def make_es_collector(cfg: DictConfig, actor) -> ESCollector:
+def es_population(actor, pieces: Collection[str]):
+    """The class that computes ES members' actions: :class:`PopulationActor` where it computes
+    exactly what ``actor`` does (tanh/ReLU MLPs), else the reference :class:`ModulePopulation`."""
+    return PopulationActor if "es_forward" in pieces and PopulationActor.supports(actor) else ModulePopulation
+
+
+def es_backend(cfg: DictConfig, pieces: Collection[str], backend: str) -> str:
+    """``backend`` (``es.backend``, ``ray.worker_backend``) with ``auto`` resolved: the fastest
+    local backend for the env, or the ``gym`` reference without the ``es_physics`` piece."""
+    if backend != "auto":
+        return backend
+    return default_backend(cfg.env.id) if "es_physics" in pieces else "gym"
+
+
+def make_es_collector(cfg: DictConfig, actor, pieces: Collection[str] | None = None) -> ESCollector:
     """The ES collector on ``es.backend``; ``mujoco_batch`` steps on this job's share of the cores
     (:func:`~torchrl_esrl.threads.job_cores`)."""
-    backend, backend_kwargs = cfg.es.backend, {}
-    if backend == "auto":
-        backend = default_backend(resolve_env_id(cfg.env.id))
+    fast = _pieces(cfg, pieces)
+    backend, backend_kwargs = es_backend(cfg, fast, cfg.es.backend), {}
     if backend == "ray":  # offspring evaluated on a Ray cluster, see the `ray` config section
         from torchrl_esrl.collectors.ray_backend import ray_backend_kwargs
 
         backend_kwargs = ray_backend_kwargs(cfg)
+        backend_kwargs["worker_backend"] = es_backend(cfg, fast, backend_kwargs["worker_backend"])
     elif backend == "mujoco_batch":
         backend_kwargs = {"nthread": job_cores()}
-    return ESCollector(cfg.env.id, cpu_actor(actor), backend=backend, max_episode_steps=cfg.env.max_episode_steps, seed=int(cfg.seed) + 2, **backend_kwargs)
+    actor = cpu_actor(actor)
+    return ESCollector(
+        cfg.env.id, actor, backend=backend, max_episode_steps=cfg.env.max_episode_steps,
+        seed=int(cfg.seed) + 2, population=es_population(actor, fast), **backend_kwargs,
+    )
+
+
+def make_evaluator(cfg: DictConfig, actor, pieces: Collection[str] | None = None) -> ESCollector:
+    """The deterministic evaluation of a recipe's policies: ``actor``'s architecture played in
+    gymnasium (the ``gym`` backend), on the evaluation seed stream."""
+    actor = cpu_actor(actor)
+    population = es_population(actor, _pieces(cfg, pieces))
+    return ESCollector(cfg.env.id, actor, backend="gym", max_episode_steps=cfg.env.max_episode_steps, seed=int(cfg.seed) + 1000, population=population)
 
 
 def make_threshold(cfg: DictConfig) -> Threshold:

@@ -30,7 +30,7 @@ from torchrl_esrl.modules.networks import flat_parameters
 from torchrl_esrl.report import plot_run
 from torchrl_esrl.run.console import returns_text
 from torchrl_esrl.run.determinism import seed_everything
-from torchrl_esrl.run.factories import cpu_actor
+from torchrl_esrl.run.factories import make_evaluator
 from torchrl_esrl.run.metrics import MetricsLog, write_json
 
 
@@ -79,7 +79,7 @@ class RunHarness:
         baseline the returned policy is compared with. The per-iteration evaluation stream is not
         drawn from."""
         cfg = self.cfg
-        self.evaluator = ESCollector(cfg.env.id, cpu_actor(actor), backend="gym", max_episode_steps=cfg.env.max_episode_steps, seed=int(cfg.seed) + 1000)
+        self.evaluator = make_evaluator(cfg, actor)
         self.initial_return = self.evaluate_final(flat_parameters(actor))
 
     def evaluate(self, vector: torch.Tensor, episodes: int | None = None, seeds: Sequence[int] | None = None) -> float:

@@ -38,7 +38,7 @@ class TD3Config:
     loss_function: str = MISSING
     critic_hidden: List[int] = MISSING
     critic_activation: str = MISSING
-    fast: bool = MISSING
+    fast: Optional[bool] = None  # renamed: the top-level `implementation` (config.py names it)
     random_frames: int = MISSING
     num_threads: Optional[int] = MISSING
 
@@ -134,6 +134,7 @@ class ESTD3Config:
     """The whole config of ``recipes/es_td3.py``."""
 
     seed: int = MISSING
+    implementation: str = MISSING
     device: str = MISSING
     iterations: int = MISSING
     experiment_name: str = MISSING
