@@ -1,10 +1,9 @@
 """The README's first command (``experiment=demo``), shortened, in a real subprocess: the returned
-ES mean beats the initial policy, the ES mean took part, the console is quiet and its last lines
-say the returns and where the files and the plot are."""
+ES mean solves InvertedPendulum-v5, the console is quiet, one line per iteration when it is not a
+terminal, and its last lines say the returns and where the files and the plot are."""
 import json
 import subprocess
 import sys
-from itertools import pairwise
 from pathlib import Path
 
 import pytest
@@ -12,25 +11,26 @@ import pytest
 from torchrl_esrl.run.metrics import read_metrics
 
 ROOT = Path(__file__).resolve().parents[1]
+TOP = 1000.0  # InvertedPendulum-v5: the pole stays up for all 1000 steps
 
 
 @pytest.mark.e2e
-def test_demo_shortened_learns_and_says_so_quietly(tmp_path):
-    # 2 of the preset's 8 iterations; everything else is the preset (InvertedPendulum-v5).
+def test_demo_shortened_solves_the_task_and_says_so_quietly(tmp_path):
+    # 10 of the preset's 15 iterations (seed 0); everything else is the preset.
     result = subprocess.run(
-        [sys.executable, str(ROOT / "recipes" / "es_td3.py"), "experiment=demo", "iterations=2", f"hydra.run.dir={tmp_path}"],
+        [sys.executable, str(ROOT / "recipes" / "es_td3.py"), "experiment=demo", "iterations=10", f"hydra.run.dir={tmp_path}"],
         cwd=tmp_path, capture_output=True, text=True, timeout=900,
     )
     assert result.returncode == 0, result.stderr[-3000:]
     summary = json.loads((tmp_path / "summary.json").read_text())
     rows = read_metrics(tmp_path / "metrics.csv")
 
-    # The returned policy is clearly better than the initial one, on the same protocol.
-    assert summary["final_episodes"] == 5 and summary["initial_return"] is not None
-    assert summary["final_return"] >= 2 * summary["initial_return"] + 5, summary
-    # The ES mean took part: it was overwritten, or it improved by itself between iterations.
-    es_improved = any(b["es_eval_return"] > a["es_eval_return"] and not a["overwritten"] for a, b in pairwise(rows))
-    assert summary["overwrites"] >= 1 or es_improved
+    # The returned policy solves the task from an initial policy that does not, on the same protocol.
+    assert summary["final_episodes"] == 5 and summary["initial_return"] < 0.1 * TOP
+    assert summary["final_return"] >= 0.9 * TOP, summary
+    # The TD3 actor got there and the overwrite rule handed it to the ES mean.
+    assert summary["overwrites"] >= 1 and max(r["td3_eval_return"] for r in rows) >= 0.9 * TOP
+    assert rows[-1]["es_eval_return"] >= 0.9 * TOP
 
     # The last lines: returns of the returned policy, the TD3 actor and the initial policy, and where things are.
     out = result.stdout
@@ -47,7 +47,10 @@ def test_demo_shortened_learns_and_says_so_quietly(tmp_path):
     assert "Initialized LazyTensorStorage" not in console
     assert "frames_per_iteration:" not in console and "population_size:" not in console
     assert (tmp_path / ".hydra" / "config.yaml").exists()  # the config is in the run directory instead
-    assert len(result.stdout.strip().splitlines()) <= 8
+    # Not a terminal: one plain line per iteration, then at most 8 lines of results, no bar.
+    lines = result.stdout.strip().splitlines()
+    assert [line.split(" | ")[0] for line in lines[:10]] == [f"iteration {i}/10" for i in range(1, 11)]
+    assert len(lines) <= 10 + 8 and "\r" not in console
 
 
 @pytest.mark.e2e

@@ -584,3 +584,14 @@ def test_failed_checkpoint_write_stops_keeps_the_previous_checkpoint_and_resumes
     result = run(tmp_path)  # the limit lifted
     assert result.returncode == 0, result.stderr[-3000:]
     assert rows_without_wall_time(tmp_path) == rows_without_wall_time(reference)
+
+
+def test_a_checkpoint_config_from_before_a_rename_reads_in_todays_names():
+    from torchrl_esrl.run.resume import in_todays_names
+
+    old = {"seed": 0, "td3": {"fast": True, "lr": 3e-4}}
+    assert in_todays_names(old) == {"seed": 0, "implementation": "fast", "td3": {"fast": None, "lr": 3e-4}}
+    assert in_todays_names({"td3": {"fast": False}})["implementation"] == "reference"
+    today = {"implementation": "reference", "td3": {"fast": None}}
+    assert in_todays_names(today) == today
+    assert old["td3"]["fast"] is True  # the checkpoint's own dict is left as it was

@@ -90,6 +90,15 @@ def finished_line(run_dir: Path, summary: dict) -> str:
     )
 
 
+def in_todays_names(saved: dict) -> dict:
+    """A checkpoint's config in today's key names (``run/config.py``'s ``RENAMED``), so that a run
+    started before a rename resumes: ``td3.fast: true|false`` is ``implementation: fast|reference``."""
+    fast = saved.get("td3", {}).get("fast")
+    if fast is None:
+        return saved
+    return {**saved, "implementation": "fast" if fast else "reference", "td3": {**saved["td3"], "fast": None}}
+
+
 def prepare_run(cfg: DictConfig, hydra_run_dir, algorithm: str | Callable[[DictConfig], str] | None = None) -> tuple[DictConfig, Path]:
     """Every check before any work. Returns ``(config, run_dir)``; raises :class:`ConfigError`
     with a one-line message, or :class:`Finished` if the run directory's run has finished.
@@ -107,7 +116,7 @@ def prepare_run(cfg: DictConfig, hydra_run_dir, algorithm: str | Callable[[DictC
     readable, damaged = newest_readable(run_dir) if run_dir.is_dir() else (None, [])
     metadata = Checkpoint.manifest(readable)["metadata"] if readable is not None else None
     summary = finished_summary(run_dir)
-    saved = metadata["config"] if metadata is not None else None
+    saved = in_todays_names(metadata["config"]) if metadata is not None else None
     current = OmegaConf.to_container(OmegaConf.masked_copy(cfg, [k for k in cfg if k != "hydra"]), resolve=True)
     if resume and saved is None:
         if summary is not None:
