@@ -1,4 +1,4 @@
-"""mode=async vs mode=sequential (Algorithm 1) at equal frames, on this machine, in one process.
+"""es.schedule=async vs es.schedule=sequential (Algorithm 1) at equal frames, on this machine, in one process.
 
     python benchmarks/async_vs_sequential.py [--iterations 3] [--repeats 2] [--env halfcheetah] [override ...]
 
@@ -88,7 +88,7 @@ def main() -> None:
     order = [m for r in range(args.repeats) for m in (("sequential", "async") if r % 2 == 0 else ("async", "sequential"))]
     runs: dict[str, list[dict]] = {"sequential": [], "async": []}
     for mode in order:
-        result = run(train, [*common, f"mode={mode}"])
+        result = run(train, [*common, f"es.schedule={mode}"])
         runs[mode].append(result)
         print(f"{mode:>10}: {result['mean_iteration_time_s']:.2f} s/iteration, ES mean {result['final_es_mean_return']:.1f}, TD3 actor {result['final_td3_actor_return']:.1f}", flush=True)
     seq, asy = runs["sequential"], runs["async"]

@@ -32,7 +32,7 @@ def train(cfg: DictConfig, run: Run) -> dict:
     cem = make_cem(cfg, actor)
     rl_members = int(cfg.cem.population_size * cfg.cem.rl_fraction)
     population_collector = make_es_collector(cfg, actor)  # one deterministic episode per member
-    run.resume(actor, td3=td3, buffer=buffer, cem=cem, population_collector=population_collector)
+    run.start(actor, td3=td3, buffer=buffer, cem=cem, population_collector=population_collector)
     counters = run.progress.counters  # checkpointed with the run
     frames, last_generation_frames = counters.setdefault("frames", 0), counters.setdefault("last_generation_frames", 0)
     actor_steps = counters.setdefault("actor_steps", 0)

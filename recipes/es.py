@@ -19,7 +19,7 @@ def train(cfg: DictConfig, run: Run) -> dict:
     actor, _ = make_actor_critic(cfg, make_train_env(cfg))  # the env only gives the actor its shapes
     es = make_es(cfg, actor)
     es_collector = make_es_collector(cfg, actor)
-    run.resume(actor, es=es, es_collector=es_collector)
+    run.start(actor, es=es, es_collector=es_collector)
 
     for iteration in run.iterations("ES"):
         returns = []

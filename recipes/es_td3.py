@@ -45,10 +45,10 @@ def train(cfg: DictConfig, run: Run) -> dict:
     es_phase = make_es_phase(cfg, es, es_collector, make_multibuffer(cfg), make_threshold(cfg), on_generation=run.on_es_generation)
     buffer, threshold = es_phase.buffer, es_phase.threshold  # lock-guarded when ES runs in the background
     overwrite = make_overwrite_rule(cfg)
-    run.resume(actor, td3=td3, exploration=td3.exploration_policy, td3_env=TD3EnvState(collector), buffer=buffer, es=es, es_collector=es_collector, threshold=threshold, overwrite=overwrite)
+    run.start(actor, td3=td3, exploration=td3.exploration_policy, td3_env=TD3EnvState(collector), buffer=buffer, es=es, es_collector=es_collector, threshold=threshold, overwrite=overwrite)
 
     for iteration in run.iterations("ES-TD3Buffers"):
-        es_phase.start()  # mode=async: this iteration's ES generations run alongside the TD3 phase
+        es_phase.start()  # es.schedule=async: this iteration's ES generations run alongside the TD3 phase
         # TD3: M frames of noisy actions into the noisy buffer, learning once all buffers hold K;
         # TD3 episodes raise the best return too.
         td3_stats = td3_phase(

@@ -24,7 +24,7 @@ def train(cfg: DictConfig, run: Run) -> dict:
     collector, frame_batches = make_frame_batches(cfg, env, td3)
     # One buffer: the MultiBuffer with all of the batch from "noisy" is a plain TD3 replay buffer.
     buffer = make_multibuffer(cfg, one_buffer=True)
-    run.resume(actor, td3=td3, exploration=td3.exploration_policy, td3_env=TD3EnvState(collector), buffer=buffer)
+    run.start(actor, td3=td3, exploration=td3.exploration_policy, td3_env=TD3EnvState(collector), buffer=buffer)
     episodes = run.progress.counters.setdefault("td3_train_episodes", 0)
 
     for iteration in run.iterations("TD3"):

@@ -1,4 +1,4 @@
-"""mode=async: ES generations in a background thread while the main thread trains TD3."""
+"""es.schedule=async: ES generations in a background thread while the main thread trains TD3."""
 import json
 import threading
 
@@ -98,7 +98,7 @@ def test_guarded_calls_hold_the_lock():
 
 @pytest.mark.e2e
 def test_recipe_async_mode_same_frames_as_sequential(run_recipe, tmp_path):
-    result = run_recipe("es_td3.py", "env=swimmer", "mode=async", f"hydra.run.dir={tmp_path}")
+    result = run_recipe("es_td3.py", "env=swimmer", "es.schedule=async", f"hydra.run.dir={tmp_path}")
     assert result.returncode == 0, result.stderr[-3000:]
     rows = read_metrics(tmp_path / "metrics.csv")
     assert [r["td3_frames"] for r in rows] == [400, 800]
@@ -109,7 +109,14 @@ def test_recipe_async_mode_same_frames_as_sequential(run_recipe, tmp_path):
 
 
 @pytest.mark.e2e
-def test_unknown_mode_fails_fast(run_recipe, tmp_path):
-    result = run_recipe("es_td3.py", "mode=hogwild", f"hydra.run.dir={tmp_path}")
-    assert result.returncode != 0 and "mode" in result.stderr.strip().splitlines()[-1]
+def test_unknown_schedule_fails_fast(run_recipe, tmp_path):
+    result = run_recipe("es_td3.py", "es.schedule=hogwild", f"hydra.run.dir={tmp_path}")
+    assert result.returncode != 0 and "es.schedule" in result.stderr.strip().splitlines()[-1]
     assert "Traceback" not in result.stderr
+
+
+@pytest.mark.e2e
+def test_the_old_mode_key_is_a_one_line_error_naming_es_schedule(run_recipe, tmp_path):
+    result = run_recipe("es_td3.py", "mode=async", f"hydra.run.dir={tmp_path / 'run'}")
+    assert result.returncode == 2 and result.stderr.strip().splitlines() == ["config error: mode: renamed to es.schedule (es.schedule=sequential or es.schedule=async)"]
+    assert not (tmp_path / "run").exists()

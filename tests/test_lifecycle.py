@@ -171,7 +171,7 @@ VALUE_ERRORS = [
     ("overwrite.window=0", "overwrite.window"),
     ("eval.episodes=0", "eval.episodes"),
     ("eval.final_episodes=0", "eval.final_episodes"),
-    ("mode=parallel", "mode"),
+    ("es.schedule=parallel", "es.schedule"),
     ("ray.num_workers=0", "ray.num_workers"),
     ("ray.num_cpus_per_worker=0", "ray.num_cpus_per_worker"),
     ("ray.worker_backend=ray", "ray.worker_backend"),
@@ -592,6 +592,7 @@ def test_a_checkpoint_config_from_before_a_rename_reads_in_todays_names():
     old = {"seed": 0, "td3": {"fast": True, "lr": 3e-4}}
     assert in_todays_names(old) == {"seed": 0, "implementation": "fast", "td3": {"fast": None, "lr": 3e-4}}
     assert in_todays_names({"td3": {"fast": False}})["implementation"] == "reference"
-    today = {"implementation": "reference", "td3": {"fast": None}}
+    today = {"implementation": "reference", "td3": {"fast": None}, "es": {"schedule": "async"}}
     assert in_todays_names(today) == today
+    assert in_todays_names({"mode": "async", "es": {"sigma": 0.005}}) == {"mode": None, "es": {"sigma": 0.005, "schedule": "async"}}
     assert old["td3"]["fast"] is True  # the checkpoint's own dict is left as it was

@@ -1,4 +1,4 @@
-"""Asynchronous ES-TD3Buffers (``mode=async``; the Hogwild!-style platform suggested in the paper's Discussion, in the
+"""Asynchronous ES-TD3Buffers (``es.schedule=async``; the Hogwild!-style platform suggested in the paper's Discussion, in the
 spirit of AES-RL, Lee et al. 2020).
 
 Algorithm 1 alternates: M TD3 frames, then g ES generations. Here the g generations of an

@@ -59,7 +59,7 @@ class GenerationReturns:
 class ESPhase:
     """Algorithm 1's ES step with the same two calls whether it runs inline or in the background.
 
-    ``start()`` begins an iteration's ``generations``: with ``background`` (``mode=async``) in a
+    ``start()`` begins an iteration's ``generations``: with ``background`` (``es.schedule=async``) in a
     thread, alongside the TD3 phase; inline, nothing yet. ``finish()`` returns their
     :class:`GenerationReturns`: inline, it runs them there; in the background, it waits for them.
     Both halves must use ``self.buffer`` and ``self.threshold``, which are lock-guarded in the

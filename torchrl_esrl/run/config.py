@@ -19,7 +19,7 @@ from torchrl_esrl.errors import ConfigError
 LOSS_FUNCTIONS = ("l2", "l1", "smooth_l1")  # torchrl.objectives.utils.distance_loss
 FITNESS_SHAPINGS = ("centered_ranks", "none")  # torchrl_esrl.es.openes.OpenES
 BUFFER_MODES = ("multi", "shared")
-MODES = ("sequential", "async")
+SCHEDULES = ("sequential", "async")
 OVERWRITE_MODES = ("hard", "soft")
 # logger.backend -> the package its TorchRL logger needs ("" = no logger, csv = no extra package)
 LOGGER_PACKAGES = {"": None, "csv": None, "tensorboard": "tensorboard", "wandb": "wandb", "mlflow": "mlflow", "trackio": "trackio"}
@@ -28,7 +28,10 @@ SEED_LIMIT = 2**31 - 2000  # numpy seeds are < 2**32; the recipes add up to 1000
 
 # Keys that were renamed: old name -> what to write instead (the schema keeps the old name, unset, so
 # that a config using it reaches this check instead of Hydra's unknown-key error).
-RENAMED = {"td3.fast": "implementation (implementation=fast, or implementation=reference for td3.fast=false)"}
+RENAMED = {
+    "td3.fast": "implementation (implementation=fast, or implementation=reference for td3.fast=false)",
+    "mode": "es.schedule (es.schedule=sequential or es.schedule=async)",
+}
 
 
 def _get_or_none(cfg, field: str):
@@ -156,7 +159,7 @@ def validate_config(cfg) -> None:
         raise ConfigError(f"buffer.min_size: {cfg.buffer.min_size} is larger than buffer.capacity={cfg.buffer.capacity} (allowed: K <= capacity, else TD3 never starts)")
     _choice(cfg, "buffer.mode", BUFFER_MODES)
     _number(cfg, "threshold.fraction", low=0, high=1)
-    _choice(cfg, "mode", MODES)
+    _choice(cfg, "es.schedule", SCHEDULES)
     _choice(cfg, "overwrite.mode", OVERWRITE_MODES)
     _number(cfg, "overwrite.mix", low=0, high=1, low_open=True)
     _number(cfg, "td3.random_frames", low=0, integer=True)

@@ -218,8 +218,8 @@ def make_threshold(cfg: DictConfig) -> Threshold:
 
 
 def make_es_phase(cfg: DictConfig, es: OpenES, es_collector: ESCollector, buffer: MultiBuffer, threshold: Threshold, on_generation=None) -> ESPhase:
-    """Algorithm 1's ES step; ``mode=async`` runs it in a thread alongside the TD3 phase."""
-    return ESPhase(es, es_collector, buffer, threshold, cfg.es.generations_per_iteration, shared_buffer=cfg.buffer.mode == "shared", background=cfg.mode == "async", on_generation=on_generation)
+    """Algorithm 1's ES step; ``es.schedule=async`` runs it in a thread alongside the TD3 phase."""
+    return ESPhase(es, es_collector, buffer, threshold, cfg.es.generations_per_iteration, shared_buffer=cfg.buffer.mode == "shared", background=cfg.es.schedule == "async", on_generation=on_generation)
 
 
 def make_overwrite_rule(cfg: DictConfig) -> OverwriteRule:

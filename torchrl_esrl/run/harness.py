@@ -66,7 +66,7 @@ class RunHarness:
         self.bar = None  # the progress bar, set by Run.iterations
         self.returns_text = ""  # the last evaluation, shown on the bar
         self.last_row: dict = {}
-        self.threads: dict[str, int] = {}  # the phases' thread counts (Run.resume), for summary.json
+        self.threads: dict[str, int] = {}  # the phases' thread counts (Run.start), for summary.json
 
     @property
     def wall_time_s(self) -> float:

@@ -41,7 +41,7 @@ class Run(RunHarness):
     """The plumbing around a recipe's loop: the harness (seeding, metrics, evaluation, summary),
     determinism, the loop's progress and the checkpoint.
 
-    A recipe builds its components, hands them to :meth:`resume`, then loops over
+    A recipe builds its components, hands them to :meth:`start`, then loops over
     :meth:`iterations`; what the loop body logs is checkpointed after it.
     """
 
@@ -51,9 +51,10 @@ class Run(RunHarness):
         make_deterministic()
         self.checkpoint: RunCheckpoint | None = None
 
-    def resume(self, actor, **components) -> None:
-        """Evaluate ``actor``'s architecture; checkpoint ``components`` (name -> object with
-        ``state_dict``/``load_state_dict``) and restore them from the last checkpoint, if any."""
+    def start(self, actor, **components) -> None:
+        """Start the run, or continue it: evaluate ``actor`` as built, checkpoint ``components``
+        (name -> object with ``state_dict``/``load_state_dict``) from now on, and restore them from
+        the run directory's last checkpoint, if it holds one."""
         self.attach_actor(actor)
         self.threads = threads_used(components)
         cfg = self.cfg

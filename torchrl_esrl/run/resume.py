@@ -92,11 +92,14 @@ def finished_line(run_dir: Path, summary: dict) -> str:
 
 def in_todays_names(saved: dict) -> dict:
     """A checkpoint's config in today's key names (``run/config.py``'s ``RENAMED``), so that a run
-    started before a rename resumes: ``td3.fast: true|false`` is ``implementation: fast|reference``."""
+    started before a rename resumes: ``td3.fast: true|false`` is ``implementation: fast|reference``,
+    the top-level ``mode`` is ``es.schedule``."""
     fast = saved.get("td3", {}).get("fast")
-    if fast is None:
-        return saved
-    return {**saved, "implementation": "fast" if fast else "reference", "td3": {**saved["td3"], "fast": None}}
+    if fast is not None:
+        saved = {**saved, "implementation": "fast" if fast else "reference", "td3": {**saved["td3"], "fast": None}}
+    if saved.get("mode") is not None:
+        saved = {**saved, "mode": None, "es": {**saved.get("es", {}), "schedule": saved["mode"]}}
+    return saved
 
 
 def prepare_run(cfg: DictConfig, hydra_run_dir, algorithm: str | Callable[[DictConfig], str] | None = None) -> tuple[DictConfig, Path]:

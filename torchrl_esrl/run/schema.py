@@ -58,6 +58,7 @@ class ESConfig:
     lr: float = MISSING
     weight_decay: float = MISSING
     fitness_shaping: str = MISSING
+    schedule: str = MISSING
     backend: str = MISSING
 
 
@@ -149,7 +150,7 @@ class ESTD3Config:
     overwrite: OverwriteConfig = field(default_factory=OverwriteConfig)
     eval: EvalConfig = field(default_factory=EvalConfig)
     logger: LoggerConfig = field(default_factory=LoggerConfig)
-    mode: str = MISSING
+    mode: Optional[str] = None  # renamed: es.schedule (config.py names it)
     ray: RayConfig = field(default_factory=RayConfig)
     checkpoint: CheckpointConfig = field(default_factory=CheckpointConfig)
     cem: Optional[CEMConfig] = None  # only conf/cem_rl.yaml has this section
