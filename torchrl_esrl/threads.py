@@ -1,9 +1,9 @@
-"""Per-phase torch thread counts (docs/performance.md, "Threads"), and a job's share of the cores.
+"""Per-phase torch thread counts, and a job's share of the cores (docs/performance.md, "What bounds it").
 
-OpenMP's wait policy is fixed when torch loads (the recipes choose ``PASSIVE`` for the ES
-phase's sake), but torch's intra-op thread count can change at any time. Each phase runs with
-the count that suits its work: :func:`torch_threads` sets it for a ``with`` block and restores
-the caller's afterwards.
+OpenMP's wait policy is fixed when torch loads (libgomp's default, spinning), but torch's intra-op
+thread count can change at any time. Each phase runs with the count that suits its work:
+:func:`torch_threads` sets it for a ``with`` block and restores the caller's afterwards;
+:func:`job_cores` is how many cores a job may use when a launcher or a script runs several at once.
 """
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ from contextlib import contextmanager
 
 import torch
 
-TD3_THREADS = 2  # the TD3 update's best count on the 2-core machine (docs/performance.md); more does not pay at batch 256
+TD3_THREADS = 2  # the TD3 update's count when the job has the cores: 2 measured fastest on the 2-core machine (docs/performance.md)
 
 
 @contextmanager
