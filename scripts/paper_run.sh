@@ -1,0 +1,57 @@
+#!/usr/bin/env bash
+# The README's main command at the paper's budget (conf/config.yaml: Section 4 and its table),
+# run to the end across sessions:
+#
+#     python recipes/es_td3.py env=walker2d seed=0
+#
+# Each call runs one piece: the run continues from its own checkpoints (hydra.run.dir=run_dir; a
+# checkpoint every 50k TD3 frames as well as at every iteration boundary, so a killed piece loses at
+# most one ES phase). While a piece runs, <run_dir>.piece<N>.alive holds its commit, start, seconds so
+# far and peak resident memory (VmHWM), rewritten every 10 s, so a piece killed with its session
+# still has a record. <run_dir>.pieces gets one line per piece: that record and how it ended (exit
+# status, or "killed" for a piece that left only its .alive file). Once the run has written
+# summary.json, its records go to $RESULTS: metrics.csv, summary.json, config.yaml, pieces.txt; and
+# the report of the one run goes to $REPORT (recipes/report.py: curves, buffer sizes, ES mean vs
+# TD3 actor). A finished run is never rewritten: calling again only copies the records.
+#
+# Usage: scripts/paper_run.sh [run_dir] [extra overrides...]
+#   RESULTS=docs/results/runs/paper/walker2d/es_td3_seed0  REPORT=docs/results/paper  PYTHON=python
+#   e.g. nohup scripts/paper_run.sh runs_paper/walker2d/es_td3_seed0 > /dev/null 2>&1 &
+set -u
+cd "$(dirname "$0")/.."
+DIR=${1:-runs_paper/walker2d/es_td3_seed0}
+shift $(( $# < 1 ? $# : 1 ))
+RESULTS=${RESULTS:-docs/results/runs/paper/walker2d/es_td3_seed0}
+REPORT=${REPORT:-docs/results/paper}
+PYTHON=${PYTHON:-python}
+mkdir -p "$(dirname "$DIR")"
+
+for alive in "$DIR".piece*.alive; do  # pieces killed with their session: keep their last record
+  [ -f "$alive" ] || continue
+  echo "$(cat "$alive") killed" >> "$DIR.pieces" && rm "$alive"
+done
+if [ ! -f "$DIR/summary.json" ]; then
+  piece=$(grep -c '^piece ' "$DIR.pieces" 2>/dev/null || true)
+  piece=${piece:-0}
+  record="piece $piece commit $(git rev-parse HEAD) start $(date -u +%FT%TZ)"
+  t0=$(date +%s)
+  "$PYTHON" recipes/es_td3.py env=walker2d seed=0 hydra.run.dir="$DIR" checkpoint.every_frames=50000 "$@" \
+    > "$DIR.piece$piece.log" 2>&1 &
+  pid=$!
+  peak=0
+  while kill -0 "$pid" 2> /dev/null; do
+    hwm=$(awk '/^VmHWM/ {print int($2 / 1024)}' "/proc/$pid/status" 2> /dev/null)
+    if [ "${hwm:-0}" -gt "$peak" ]; then peak=$hwm; fi
+    echo "$record seconds $(( $(date +%s) - t0 )) peak_rss_mib $peak" > "$DIR.piece$piece.alive"
+    sleep 10
+  done
+  wait "$pid"
+  status=$?
+  echo "$record seconds $(( $(date +%s) - t0 )) peak_rss_mib $peak exit $status" >> "$DIR.pieces" && rm -f "$DIR.piece$piece.alive"
+fi
+[ -f "$DIR/summary.json" ] || exit 1
+mkdir -p "$RESULTS" "$REPORT"
+cp "$DIR/metrics.csv" "$DIR/summary.json" "$RESULTS/"
+cp "$DIR/.hydra/config.yaml" "$RESULTS/config.yaml"
+cp "$DIR.pieces" "$RESULTS/pieces.txt"
+"$PYTHON" recipes/report.py "$RESULTS" --out "$REPORT" > /dev/null
