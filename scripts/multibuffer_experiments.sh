@@ -19,10 +19,12 @@
 # before any checkpoint starts over. Every finished run's metrics.csv, summary.json and config.yaml are
 # copied to $RESULTS/<env>/<row>_seed<k>/ (commit them; COMMIT=1 commits each one as it lands), with
 # timing.txt: one line per attempt (exit status, seconds of the command), so a resumed run's wall-clock
-# is the sum of its lines.
+# is the sum of its lines. A recorded run's checkpoints are then deleted (KEEP_CHECKPOINTS=1 keeps
+# them): a finished run is never continued, and at SET=miniature the 80 runs' checkpoints would
+# need about 60 GB (an ES-TD3Buffers run on Ant keeps two of 2.7 GB).
 #
 # Usage: scripts/multibuffer_experiments.sh [work_dir] [parallel_jobs] [extra hydra overrides...]
-#   SET=multibuffer  RESULTS=docs/results/runs/$SET  PYTHON=python  COMMIT=0   (environment, defaults shown)
+#   SET=multibuffer  RESULTS=docs/results/runs/$SET  PYTHON=python  COMMIT=0  KEEP_CHECKPOINTS=0   (environment, defaults shown)
 #   ONLY=<regex> runs only the lines 'env row recipe seed ...' it matches, e.g. ONLY='^walker2d td3 '
 #   Report: python recipes/report.py docs/results/runs/$SET --out docs/results/$SET
 #   e.g. SET=miniature COMMIT=1 scripts/multibuffer_experiments.sh runs_miniature 2
@@ -32,7 +34,7 @@ WORK=${1:-runs_$SET}
 JOBS=${2:-2}
 shift $(( $# < 2 ? $# : 2 ))
 cd "$(dirname "$0")/.."
-export SET WORK JOBS EXTRA="$*" RESULTS=${RESULTS:-docs/results/runs/$SET} PYTHON=${PYTHON:-python} COMMIT=${COMMIT:-0}
+export SET WORK JOBS EXTRA="$*" RESULTS=${RESULTS:-docs/results/runs/$SET} PYTHON=${PYTHON:-python} COMMIT=${COMMIT:-0} KEEP_CHECKPOINTS=${KEEP_CHECKPOINTS:-0}
 ONLY=${ONLY:-.}
 mkdir -p "$WORK" "$RESULTS"
 
@@ -89,6 +91,7 @@ run_one() {
   cp "$dir/metrics.csv" "$dir/summary.json" "$dest/"
   cp "$dir/.hydra/config.yaml" "$dest/config.yaml"
   if [ -f "$dir/timing.txt" ]; then cp "$dir/timing.txt" "$dest/"; fi
+  if [ "$KEEP_CHECKPOINTS" != 1 ]; then rm -rf "$dir/checkpoints"; fi
   if [ "$COMMIT" = 1 ]; then flock "$WORK/.git.lock" sh -c 'git add "$1" && git commit -q -m "results: $2 (experiment=$3)" -- "$1"' _ "$dest" "$env $name" "$SET"; fi
 }
 export -f run_one
