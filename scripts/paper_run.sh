@@ -7,7 +7,7 @@
 # Each call runs one piece: the run continues from its own checkpoints (hydra.run.dir=run_dir; a
 # checkpoint every 50k TD3 frames as well as at every iteration boundary, so a killed piece loses at
 # most one ES phase). While a piece runs, <run_dir>.piece<N>.alive holds its commit, start, seconds so
-# far and peak resident memory (VmHWM), rewritten every 10 s, so a piece killed with its session
+# far and peak resident memory (VmHWM), rewritten every 2 s, so a piece killed with its session
 # still has a record. <run_dir>.pieces gets one line per piece: that record and how it ended (exit
 # status, or "killed" for a piece that left only its .alive file). Once the run has written
 # summary.json, its records go to $RESULTS: metrics.csv, summary.json, config.yaml, pieces.txt; and
@@ -43,7 +43,7 @@ if [ ! -f "$DIR/summary.json" ]; then
     hwm=$(awk '/^VmHWM/ {print int($2 / 1024)}' "/proc/$pid/status" 2> /dev/null)
     if [ "${hwm:-0}" -gt "$peak" ]; then peak=$hwm; fi
     echo "$record seconds $(( $(date +%s) - t0 )) peak_rss_mib $peak" > "$DIR.piece$piece.alive"
-    sleep 10
+    sleep 2
   done
   wait "$pid"
   status=$?

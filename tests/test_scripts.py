@@ -1,0 +1,56 @@
+"""The experiment scripts (scripts/), run for real on MuJoCo with tiny budgets: what they record,
+what they skip on a second call, what they delete."""
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+
+pytestmark = pytest.mark.e2e
+
+
+def _script(name: str, *args: str, **environment: str) -> subprocess.CompletedProcess:
+    env = {**os.environ, "PYTHON": sys.executable, **environment}
+    return subprocess.run(["bash", str(ROOT / "scripts" / name), *args], cwd=ROOT, capture_output=True, text=True, timeout=900, env=env)
+
+
+def test_experiment_set_records_a_run_deletes_its_checkpoints_and_skips_it_next_time(tmp_path):
+    work, results = tmp_path / "work", tmp_path / "results"
+    tiny = ("iterations=1", "es.population_size=4", "env.max_episode_steps=50", "eval.episodes=1", "eval.final_episodes=1")
+    call = lambda: _script("multibuffer_experiments.sh", str(work), "1", *tiny, SET="miniature", RESULTS=str(results), ONLY="^swimmer es es.py 0$")
+    first = call()
+    assert first.returncode == 0, first.stdout + first.stderr
+    record = results / "swimmer" / "es_seed0"
+    assert sorted(p.name for p in record.iterdir()) == ["config.yaml", "metrics.csv", "summary.json", "timing.txt"]
+    assert json.loads((record / "summary.json").read_text())["env"] == "Swimmer-v5"
+    assert (record / "timing.txt").read_text().startswith("swimmer es_seed0: exit 0 after ")
+    run_dir = work / "swimmer" / "es_seed0"
+    assert (run_dir / "summary.json").exists() and not (run_dir / "checkpoints").exists()
+    second = call()
+    assert second.returncode == 0 and "swimmer es_seed0: recorded, skipped" in second.stdout
+    assert len((record / "timing.txt").read_text().splitlines()) == 1
+
+
+def test_paper_run_records_each_piece_a_killed_one_too_and_never_reruns_a_finished_run(tmp_path):
+    run_dir, results, report = tmp_path / "run", tmp_path / "records", tmp_path / "report"
+    killed = "piece 0 commit abc start 2026-01-01T00:00:00Z seconds 40 peak_rss_mib 900"
+    (tmp_path / "run.piece0.alive").write_text(killed + "\n")  # what a piece killed with its session leaves
+    call = lambda: _script("paper_run.sh", str(run_dir), "experiment=tiny", "td3.num_threads=1", RESULTS=str(results), REPORT=str(report))
+    first = call()
+    assert first.returncode == 0, first.stdout + first.stderr
+    pieces = (results / "pieces.txt").read_text().splitlines()
+    assert pieces[0] == killed + " killed"
+    commit = subprocess.run(["git", "rev-parse", "HEAD"], cwd=ROOT, capture_output=True, text=True).stdout.strip()
+    words = pieces[1].split()
+    assert words[:4] == ["piece", "1", "commit", commit] and words[-2:] == ["exit", "0"]
+    assert int(words[words.index("seconds") + 1]) > 0 and int(words[words.index("peak_rss_mib") + 1]) > 100  # torch alone is more
+    assert sorted(p.name for p in results.iterdir()) == ["config.yaml", "metrics.csv", "pieces.txt", "summary.json"]
+    assert (report / "results.md").exists() and (report / "es_vs_td3_Walker2d-v5.png").exists()
+    assert not list(tmp_path.glob("run.piece*.alive"))
+    second = call()
+    assert second.returncode == 0
+    assert (results / "pieces.txt").read_text().splitlines() == pieces  # finished: no new piece
