@@ -121,6 +121,7 @@ def test_report_table_matches_the_runs_and_writes_figures(runs, tmp_path):
     assert float(td3["iqm"]) == pytest.approx(statistics.mean(finals))  # 2 values: nothing trimmed
     assert min(finals) - 1e-6 <= float(td3["iqm_ci_low"]) <= float(td3["iqm_ci_high"]) <= max(finals) + 1e-6
     assert all(int(table[key]["runs"]) == 1 for key in buffers) and table[("cem_rl", "")]["iqm_ci_low"] == "nan"  # one seed: no CI
+    assert table[("cem_rl", "")]["std"] == "nan" and "| n/a |" in (tmp_path / "results.md").read_text()  # nor a spread
     for run_dir in (runs / "sweep").glob("*/"):
         summary = load(run_dir)[1]
         ratio = ":".join(f"{r:g}" for r in summary["ratio"])

@@ -214,7 +214,7 @@ def results_table(runs: list[dict]) -> list[dict]:
                 "td3_frames": int(np.mean([s.get("td3_frames", 0) for s in summaries])),
                 "es_frames": int(np.mean([s.get("es_frames", 0) for s in summaries])),
                 "mean": float(finals.mean()),
-                "std": float(finals.std(ddof=1)) if len(finals) > 1 else 0.0,
+                "std": float(finals.std(ddof=1)) if len(finals) > 1 else math.nan,  # one run has no spread
                 "median": float(np.median(finals)),
                 "iqm": interquartile_mean(finals),
                 "iqm_ci_low": low,
@@ -245,7 +245,7 @@ def write_table(rows: list[dict], out_dir: Path) -> tuple[Path, Path]:
     ]
     for r in rows:
         ci = _ci_text(r["iqm_ci_low"], r["iqm_ci_high"], 1)
-        lines.append(f"| {r['env']} | {label(r['algorithm'], r['ratio'])} | {r['runs']} | {r['td3_frames']} | {r['es_frames']} | {r['mean']:.1f} | {r['std']:.1f} | {r['median']:.1f} | {r['iqm']:.1f} {ci} |")
+        lines.append(f"| {r['env']} | {label(r['algorithm'], r['ratio'])} | {r['runs']} | {r['td3_frames']} | {r['es_frames']} | {r['mean']:.1f} | {'n/a' if math.isnan(r['std']) else format(r['std'], '.1f')} | {r['median']:.1f} | {r['iqm']:.1f} {ci} |")
     lines += [
         "",
         "Final return: deterministic evaluation of the policy each algorithm returns (ES-TD3: the ES mean;",
