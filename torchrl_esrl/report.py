@@ -231,8 +231,13 @@ def _write_csv(path: Path, columns, rows: list[dict]) -> None:
         writer.writerows(rows)
 
 
+def _number_text(value: float, digits: int) -> str:
+    """A table cell: the value, or n/a where one run gives none (NaN)."""
+    return "n/a" if math.isnan(value) else f"{value:.{digits}f}"
+
+
 def _ci_text(low: float, high: float, digits: int) -> str:
-    return "n/a" if math.isnan(low) else f"[{low:.{digits}f}, {high:.{digits}f}]"
+    return "n/a" if math.isnan(low) else f"[{_number_text(low, digits)}, {_number_text(high, digits)}]"
 
 
 def write_table(rows: list[dict], out_dir: Path) -> tuple[Path, Path]:
@@ -245,7 +250,7 @@ def write_table(rows: list[dict], out_dir: Path) -> tuple[Path, Path]:
     ]
     for r in rows:
         ci = _ci_text(r["iqm_ci_low"], r["iqm_ci_high"], 1)
-        lines.append(f"| {r['env']} | {label(r['algorithm'], r['ratio'])} | {r['runs']} | {r['td3_frames']} | {r['es_frames']} | {r['mean']:.1f} | {'n/a' if math.isnan(r['std']) else format(r['std'], '.1f')} | {r['median']:.1f} | {r['iqm']:.1f} {ci} |")
+        lines.append(f"| {r['env']} | {label(r['algorithm'], r['ratio'])} | {r['runs']} | {r['td3_frames']} | {r['es_frames']} | {r['mean']:.1f} | {_number_text(r['std'], 1)} | {r['median']:.1f} | {r['iqm']:.1f} {ci} |")
     lines += [
         "",
         "Final return: deterministic evaluation of the policy each algorithm returns (ES-TD3: the ES mean;",
