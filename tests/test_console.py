@@ -1,4 +1,5 @@
-"""What a run prints (torchrl_esrl/run/console.py): outside a terminal, one plain line per iteration."""
+"""What a run prints (torchrl_esrl/run/console.py): outside a terminal, one plain line per iteration;
+in its run directory's <recipe>.log, the same lines with their times."""
 import re
 import subprocess
 
@@ -30,3 +31,8 @@ def test_output_to_a_file_has_one_plain_line_per_iteration(script, tmp_path):
     lines = [line for line in text.splitlines() if line.startswith("iteration ")]
     assert [re.match(r"iteration (\d+)/2 \| TD3 frames (\d+) \|", line).groups() for line in lines] == [("1", "400"), ("2", "800")]
     assert all("| elapsed " in line for line in lines)
+    record = (tmp_path / "run" / script.replace(".py", ".log")).read_text()  # Hydra's job log: the run's record
+    messages = re.findall(r"^\[\d{4}-\d\d-\d\d \d\d:\d\d:\d\d,\d{3}\] (.*)$", record, flags=re.MULTILINE)  # a time, then the line
+    assert messages[0].startswith("started: ") and ", seed 0, 2 iterations" in messages[0], record[:500]
+    assert [m for m in messages if m.startswith("iteration ")] == lines
+    assert messages[-1].startswith("finished: ") and "mean return over" in record

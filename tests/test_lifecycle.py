@@ -306,6 +306,9 @@ def test_baseline_killed_then_resumed_gives_the_same_metrics(tmp_path, script, e
     result = run(killed, *extra, script=script)
     assert result.returncode == 0, result.stderr[-3000:]
     assert rows_without_wall_time(killed) == rows_without_wall_time(reference)
+    record = (killed / script.replace(".py", ".log")).read_text()  # the run's record: both pieces, in order
+    assert record.count("] started: ") == 1 and record.count("] resumed at iteration ") == 1 and "] finished: " in record
+    assert record.index("] started: ") < record.index("] resumed at iteration ") < record.index("] finished: ")
 
 
 # ---------------------------------------------------------------- runs that survive what users do
@@ -579,6 +582,7 @@ def test_failed_checkpoint_write_stops_keeps_the_previous_checkpoint_and_resumes
     limited = subprocess.run(command(tmp_path), cwd=ROOT, capture_output=True, text=True, timeout=900, env=ENV, preexec_fn=_file_size_limit(64 * 1024))
     line = one_line(limited)
     assert limited.returncode == 2 and line.startswith("checkpoint error: could not write a checkpoint in") and "File too large" in line and f"kept: {first}" in line, line
+    assert f"] {line}" in (tmp_path / "es_td3.log").read_text()  # the run's record says what stopped it
     assert checkpoints(tmp_path) == [first] and tree(tmp_path / "checkpoints" / first) == kept
     assert not list((tmp_path / "checkpoints").glob(".*"))  # TorchRL removed its staging folder
     result = run(tmp_path)  # the limit lifted

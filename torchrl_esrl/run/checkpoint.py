@@ -38,6 +38,7 @@ so that a run directory of another recipe is told apart before anything is built
 from __future__ import annotations
 
 import json
+import logging
 import math
 import os
 import re
@@ -55,6 +56,7 @@ from torchrl_esrl.run.logger_position import LoggerPosition
 from torchrl_esrl.run.progress import RunProgress
 
 CHECKPOINT_DIR = "checkpoints"
+log = logging.getLogger(__name__)  # under torchrl_esrl.run: the run directory's <recipe>.log only
 CHECKPOINT_NAME = re.compile(r"checkpoint-(\d+)(\.torchrl)?")  # CheckpointRotation's entries
 
 
@@ -149,7 +151,9 @@ class RunCheckpoint:
                 skipped.append((candidate, reason))
                 continue
             for damaged, why in skipped:
-                print(f"checkpoint {damaged} cannot be read ({why}); resuming from {candidate.name}", file=sys.stderr, flush=True)
+                skip = f"checkpoint {damaged} cannot be read ({why}); resuming from {candidate.name}"
+                log.warning(skip)
+                print(skip, file=sys.stderr, flush=True)
             self._last_frames = self.progress.frames_now
             return candidate
         if skipped:

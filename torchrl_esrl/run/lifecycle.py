@@ -8,11 +8,16 @@ runs with a :class:`Run` that seeds, makes kernels deterministic, logs, evaluate
 every iteration boundary and resumes from the run directory's last readable checkpoint. A
 finished run is not run again: one line says where its results are, exit 0. A config error, a
 numerical fault or a checkpoint that cannot be written ends the run with one line on stderr, exit 2.
+
+The run's own record, ``<run dir>/<recipe>.log``, is the logger ``torchrl_esrl.run`` (Hydra's job
+logging, ``conf/hydra/job_logging/run_log.yaml``): when the run started or resumed, every finished
+iteration's line, the final returns and what stopped it, each with its time.
 """
 from __future__ import annotations
 
 import errno
 import functools
+import logging
 import os
 import sys
 from collections.abc import Callable, Iterator
@@ -35,6 +40,7 @@ from torchrl_esrl.run.progress import RunProgress
 from torchrl_esrl.run.resume import Finished, fresh_run_dir, prepare_run
 
 CONF_DIR = Path(__file__).resolve().parents[2] / "conf"
+log = logging.getLogger(__name__)  # under torchrl_esrl.run: the run directory's <recipe>.log only
 
 
 class Run(RunHarness):
@@ -60,9 +66,15 @@ class Run(RunHarness):
         cfg = self.cfg
         config = OmegaConf.to_container(cfg, resolve=True)
         self.checkpoint = RunCheckpoint(self.run_dir, config, cfg.checkpoint.every_frames, cfg.checkpoint.keep_last, algorithm=self.algorithm, progress=self.progress, evaluator=self.evaluator, **components)
-        if self.checkpoint.restore() is not None and self.log_.path.exists():
+        restored = self.checkpoint.restore()
+        if restored is not None and self.log_.path.exists():
             rows = read_metrics(self.log_.path)  # as of the checkpoint: the summary's frame counts if no iteration is left
             self.last_row = rows[-1] if rows else {}
+        what = f"{self.algorithm} on {cfg.env.id}, seed {cfg.seed}, {cfg.iterations} iterations, implementation={cfg.implementation}"
+        if restored is None:
+            log.info(f"started: {what}")
+        else:
+            log.info(f"resumed at iteration {self.progress.iteration + 1} from {restored}: {what}")
 
     def iterations(self, desc: str) -> Iterator[int]:
         """The outer loop from where the run stands; after each iteration's body, a checkpoint and,
@@ -76,8 +88,10 @@ class Run(RunHarness):
             yield iteration
             self.progress.finish_iteration()
             self.checkpoint.save()
+            line = iteration_line(self.last_row, total, self.initial_return)
+            log.info(line)
             if lines:
-                print(iteration_line(self.last_row, total, self.initial_return), flush=True)
+                print(line, flush=True)
 
     def on_td3_batch(self, frames: int, *_) -> None:
         """``td3_phase``'s ``on_batch`` hook: a checkpoint every ``checkpoint.every_frames`` TD3 frames,
@@ -119,14 +133,17 @@ def recipe_main(train: Callable[[DictConfig, Run], dict], config_name: str, algo
         try:
             summary = train(cfg, run)
         except FloatingPointError as fault:
-            _exit(f"numerical fault: {fault}; run stopped, last good checkpoint kept in {run_dir / CHECKPOINT_DIR}")
+            _stop(f"numerical fault: {fault}; run stopped, last good checkpoint kept in {run_dir / CHECKPOINT_DIR}")
         except CheckpointWriteError as error:
-            _exit(f"checkpoint error: {error}")
+            _stop(f"checkpoint error: {error}")
         except OSError as error:
             if error.errno not in (errno.ENOSPC, errno.EFBIG, errno.EDQUOT):
                 raise
+            # on stderr only: the log's file is on the same full disk
             _exit(f"disk error: {error.strerror} writing {error.filename or run_dir}; run stopped, last good checkpoint kept in {run_dir / CHECKPOINT_DIR}; rerun the same command to resume once there is room")
-        print(final_lines(summary, run_dir))  # returns of the returned, TD3 and initial policies; where the files are
+        ending = final_lines(summary, run_dir)  # returns of the returned, TD3 and initial policies; where the files are
+        log.info(f"finished: {ending}")
+        print(ending)
 
     _recipe["algorithm"] = algorithm  # for ValidateBeforeRun
     return functools.partial(run_cli, main)
@@ -181,6 +198,12 @@ def _checked(cfg: DictConfig, algorithm) -> tuple[DictConfig, Path] | None:
 def _exit(message: str) -> None:
     print(message, file=sys.stderr)
     raise SystemExit(2)
+
+
+def _stop(message: str) -> None:
+    """A started run's end on an error: in its log, then as :func:`_exit`."""
+    log.error(message)
+    _exit(message)
 
 
 def one_line(error: BaseException) -> str:
