@@ -6,4 +6,3 @@ import logging
 # The run's record (lifecycle, checkpoint): silent until Hydra's job logging gives it its file
 # (conf/hydra/job_logging/run_log.yaml), as the logging HOWTO asks of a library.
 logging.getLogger(__name__).addHandler(logging.NullHandler())
-
