@@ -11,7 +11,8 @@ numerical fault or a checkpoint that cannot be written ends the run with one lin
 
 The run's own record, ``<run dir>/<recipe>.log``, is the logger ``torchrl_esrl.run`` (Hydra's job
 logging, ``conf/hydra/job_logging/run_log.yaml``): when the run started or resumed, every finished
-iteration's line, the final returns and what stopped it, each with its time.
+iteration's line, the final returns and what stopped it (a numerical fault or a checkpoint error;
+a full disk only on stderr), each with its time.
 """
 from __future__ import annotations
 
