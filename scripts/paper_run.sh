@@ -1,9 +1,10 @@
 #!/usr/bin/env bash
-# The README's main command at the paper's budget (conf/config.yaml: Section 4 and its table),
-# run to the end across sessions:
+# One run at the paper's budget (conf/config.yaml: Section 4 and its table), run to the end across
+# sessions. By default the README's main command,
 #
 #     python recipes/es_td3.py env=walker2d seed=0
 #
+# and any other with RUN (a recipe and its overrides), e.g. RUN="recipes/td3.py env=walker2d seed=0".
 # Each call runs one piece: the run continues from its own checkpoints (hydra.run.dir=run_dir; a
 # checkpoint every 50k TD3 frames as well as at every iteration boundary, so a killed piece loses at
 # most one ES phase). While a piece runs, <run_dir>.piece<N>.alive holds its commit, start, seconds so
@@ -15,8 +16,11 @@
 # TD3 actor). A finished run is never rewritten: calling again only copies the records.
 #
 # Usage: scripts/paper_run.sh [run_dir] [extra overrides...]
-#   RESULTS=docs/results/runs/paper/walker2d/es_td3_seed0  REPORT=docs/results/paper  PYTHON=python
+#   RUN="recipes/es_td3.py env=walker2d seed=0"  RESULTS=docs/results/runs/paper/walker2d/es_td3_seed0
+#   REPORT=docs/results/paper  PYTHON=python
 #   e.g. nohup scripts/paper_run.sh runs_paper/walker2d/es_td3_seed0 > /dev/null 2>&1 &
+#        RUN="recipes/es_td3.py env=swimmer seed=0" RESULTS=docs/results/runs/paper/swimmer/es_td3_seed0 \
+#          REPORT=docs/results/paper/swimmer nohup scripts/paper_run.sh runs_paper/swimmer/es_td3_seed0 > /dev/null 2>&1 &
 set -u
 cd "$(dirname "$0")/.."
 DIR=${1:-runs_paper/walker2d/es_td3_seed0}
@@ -24,6 +28,7 @@ shift $(( $# < 1 ? $# : 1 ))
 RESULTS=${RESULTS:-docs/results/runs/paper/walker2d/es_td3_seed0}
 REPORT=${REPORT:-docs/results/paper}
 PYTHON=${PYTHON:-python}
+RUN=${RUN:-recipes/es_td3.py env=walker2d seed=0}
 mkdir -p "$(dirname "$DIR")"
 
 for alive in "$DIR".piece*.alive; do  # pieces killed with their session: keep their last record
@@ -35,7 +40,8 @@ if [ ! -f "$DIR/summary.json" ]; then
   piece=${piece:-0}
   record="piece $piece commit $(git rev-parse HEAD) start $(date -u +%FT%TZ)"
   t0=$(date +%s)
-  "$PYTHON" recipes/es_td3.py env=walker2d seed=0 hydra.run.dir="$DIR" checkpoint.every_frames=50000 "$@" \
+  # shellcheck disable=SC2086  # RUN is a recipe and its overrides, split on spaces
+  "$PYTHON" $RUN hydra.run.dir="$DIR" checkpoint.every_frames=50000 "$@" \
     > "$DIR.piece$piece.log" 2>&1 &
   pid=$!
   peak=0
