@@ -26,10 +26,20 @@ def backend_class(name: str) -> Callable[..., object]:
     return getattr(importlib.import_module(module), attribute)
 
 
-def default_backend(env_id: str) -> str:
-    """The fastest local backend that supports ``env_id``."""
+def refusals(env) -> dict[str, str | None]:
+    """Per local backend, why it cannot play ``env`` (an id or an :class:`~torchrl_esrl.envs.EnvSpec`)
+    exactly as the ``gym`` reference would, or None where it can."""
+    out = {}
     for name in LOCAL_BACKENDS:
-        supports = getattr(backend_class(name), "supports", None)
-        if supports is not None and supports(env_id):
+        refusal = getattr(backend_class(name), "refusal", None)
+        out[name] = refusal(env) if refusal is not None else None
+    return out
+
+
+def default_backend(env) -> str:
+    """The fastest local backend that plays ``env`` (an id or an :class:`~torchrl_esrl.envs.EnvSpec`)
+    exactly as the ``gym`` reference would."""
+    for name, refusal in reversed(refusals(env).items()):
+        if refusal is None:
             return name
     return "gym"

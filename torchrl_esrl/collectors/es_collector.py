@@ -14,7 +14,7 @@ import torch
 
 from torchrl_esrl.collectors.backends import BACKENDS, available_backends, backend_class, default_backend
 from torchrl_esrl.collectors.generation import Generation
-from torchrl_esrl.envs import resolve_env_id
+from torchrl_esrl.envs import EnvSpec, as_env_spec
 from torchrl_esrl.errors import ConfigError
 from torchrl_esrl.modules.networks import Mirrored, ModulePopulation
 
@@ -23,7 +23,8 @@ class ESCollector:
     """Evaluates populations of actors for one full episode each (fitness = episode return).
 
     Args:
-        env_id: short name (``halfcheetah``) or gymnasium id.
+        env: the task: an :class:`~torchrl_esrl.envs.EnvSpec` (keyword arguments, wrappers,
+            transforms), or a short name (``halfcheetah``) or gymnasium id.
         actor: the actor built by :func:`torchrl_esrl.modules.networks.make_actor` (its architecture and
             action bounds define every member).
         backend: ``"auto"`` or a name in :data:`BACKENDS`.
@@ -36,14 +37,15 @@ class ESCollector:
             also reads OpenAI-ES's mirrored pairs; it refuses actors it cannot compute exactly).
     """
 
-    def __init__(self, env_id: str, actor, backend: str = "auto", max_episode_steps: int | None = None, seed: int = 0, population=ModulePopulation, **backend_kwargs):
-        self.env_id = resolve_env_id(env_id)
+    def __init__(self, env: "str | EnvSpec", actor, backend: str = "auto", max_episode_steps: int | None = None, seed: int = 0, population=ModulePopulation, **backend_kwargs):
+        self.env = as_env_spec(env, max_episode_steps)
+        self.env_id = self.env.id
         self.population_actor = population(actor)
         if backend == "auto":
-            backend = default_backend(self.env_id)
+            backend = default_backend(self.env)
         if backend not in BACKENDS:
             raise ConfigError(f"es.backend: unknown backend '{backend}' (allowed: {', '.join(available_backends())})")
-        self.backend = backend_class(backend)(self.env_id, self.population_actor, max_episode_steps=max_episode_steps, **backend_kwargs)
+        self.backend = backend_class(backend)(self.env, self.population_actor, **backend_kwargs)
         self.seeds = np.random.default_rng(seed)
         self.frames = 0
 

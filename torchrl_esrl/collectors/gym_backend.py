@@ -1,5 +1,10 @@
-"""The reference ES backend: one gymnasium env per member, stepped in lock-step with one batched
-policy forward per step. Any gymnasium id works; the fast backends are checked against it."""
+"""The reference ES backend: one env per member, stepped in lock-step with one batched policy
+forward per step. Any gymnasium id works; the fast backends are checked against it.
+
+Each member plays the run's :class:`~torchrl_esrl.envs.EnvSpec`: its gymnasium env (keyword
+arguments and wrappers) or, where the spec has TorchRL transforms, the TorchRL env TD3 plays
+(transforms included), so that what the policy sees and what a return is are the same in TD3, ES
+and evaluation."""
 from __future__ import annotations
 
 from collections.abc import Sequence
@@ -8,8 +13,11 @@ import numpy as np
 import torch
 
 from torchrl_esrl.collectors.generation import Generation, transitions_from_arrays
-from torchrl_esrl.envs import make_gym_env, resolve_env_id
+from torchrl_esrl.envs import EnvSpec, as_env_spec
+from torchrl.envs.utils import step_mdp
+
 from torchrl_esrl.modules.networks import Mirrored, PopulationActor, one_blas_thread
+from torchrl_esrl.torchrl_private import gym_env_of
 
 
 class GymBackend:
@@ -17,19 +25,24 @@ class GymBackend:
 
     name = "gym"
 
-    def __init__(self, env_id: str, population_actor: PopulationActor, max_episode_steps: int | None = None):
-        self.env_id = resolve_env_id(env_id)
+    def __init__(self, env: "str | EnvSpec", population_actor: PopulationActor, max_episode_steps: int | None = None):
+        self.spec = as_env_spec(env, max_episode_steps)
+        self.env_id = self.spec.id
         self.policy = population_actor
-        self.max_episode_steps = max_episode_steps
         self.envs: list = []
         probe = self._env(0)
         self.horizon = int(probe.spec.max_episode_steps or 1000)
         self.observation_dim = int(np.prod(probe.observation_space.shape))
         self.action_dim = int(np.prod(probe.action_space.shape))
 
+    @staticmethod
+    def refusal(env) -> None:
+        """The reference plays every spec."""
+        return None
+
     def _env(self, i: int):
         while len(self.envs) <= i:
-            self.envs.append(make_gym_env(self.env_id, self.max_episode_steps))
+            self.envs.append(TorchRLMember(self.spec) if self.spec.transforms else self.spec.make_gym())
         return self.envs[i]
 
     def rollout(self, params: torch.Tensor, seeds: Sequence[int], mirrored: Mirrored | None = None) -> Generation:
@@ -72,3 +85,33 @@ class GymBackend:
         returns = rewards.sum(axis=1)
         transitions = transitions_from_arrays(obs, actions, next_obs, rewards, terminated, truncated, lengths, returns)
         return Generation(torch.as_tensor(returns), torch.as_tensor(lengths), transitions)
+
+
+class TorchRLMember:
+    """One member's TorchRL env (:meth:`EnvSpec.make_torchrl`, the user's transforms included),
+    played through gymnasium's ``reset(seed)``/``step(action)`` calls: ``set_seed(seed)`` then
+    ``reset()`` starts an episode, and observations, rewards and flags are the transformed ones."""
+
+    def __init__(self, spec: EnvSpec):
+        import gymnasium as gym
+
+        self.env = spec.make_torchrl()
+        self.td = None
+        self.spec = gym_env_of(self.env).spec  # the time limit (horizon) of the gymnasium env inside
+        observation = self.env.observation_spec["observation"]
+        action = self.env.action_spec
+        self.observation_space = gym.spaces.Box(-np.inf, np.inf, tuple(observation.shape), np.float32)
+        self.action_space = gym.spaces.Box(action.space.low.numpy(), action.space.high.numpy(), dtype=np.float32)
+
+    def reset(self, seed: int | None = None):
+        if seed is not None:
+            self.env.set_seed(int(seed))
+        self.td = self.env.reset()
+        return self.td["observation"].numpy(), {}
+
+    def step(self, action):
+        self.td.set("action", torch.as_tensor(action, dtype=self.env.action_spec.dtype))
+        out = self.env.step(self.td)
+        nxt = out["next"]
+        self.td = step_mdp(out)
+        return nxt["observation"].numpy(), float(nxt["reward"].item()), bool(nxt["terminated"].item()), bool(nxt["truncated"].item()), {}

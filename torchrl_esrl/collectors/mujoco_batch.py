@@ -32,7 +32,7 @@ import numpy as np
 import torch
 
 from torchrl_esrl.collectors.generation import Generation, transitions_from_arrays
-from torchrl_esrl.envs import make_gym_env, resolve_env_id
+from torchrl_esrl.envs import EnvSpec, as_env_spec
 from torchrl_esrl.modules.networks import Mirrored, PopulationActor, one_blas_thread
 from torchrl_esrl.torchrl_private import gym_mujoco_constants
 
@@ -92,8 +92,8 @@ class _Worker:
     whose ``reset(seed)`` gives each member gymnasium's initial state, a batch per chunk size, and
     Ant's scratch data."""
 
-    def __init__(self, env_id: str, max_episode_steps: int | None, contact_forces: bool):
-        self.reset_env = make_gym_env(env_id, max_episode_steps)
+    def __init__(self, spec: EnvSpec, contact_forces: bool):
+        self.reset_env = spec.make_gym()
         self.model = self.reset_env.unwrapped.model
         self.batches: dict[int, mujoco.batch.Batch] = {}
         self.scratch = mujoco.MjData(self.model) if contact_forces else None
@@ -109,7 +109,8 @@ class MujocoBatchBackend:
     per chunk and step.
 
     Args:
-        env_id: a gymnasium id in :data:`TASKS` (or its short name).
+        env: an :class:`~torchrl_esrl.envs.EnvSpec` (or a gymnasium id, or its short name) that
+            :meth:`refusal` takes: a task of :data:`TASKS` as gymnasium defines it.
         population_actor: evaluates members' actors from their flat parameters.
         max_episode_steps: time limit (the env spec's when None).
         nthread: threads in all (default: all CPUs).
@@ -141,7 +142,7 @@ class MujocoBatchBackend:
 
     def __init__(
         self,
-        env_id: str,
+        env: "str | EnvSpec",
         population_actor: PopulationActor,
         max_episode_steps: int | None = None,
         nthread: int | None = None,
@@ -150,15 +151,17 @@ class MujocoBatchBackend:
         min_chunk: int = 16,
         persistent: bool = False,
     ):
-        self.env_id = resolve_env_id(env_id)
-        if self.env_id not in TASKS:
-            raise ValueError(f"mujoco_batch backend: unsupported env '{self.env_id}' (supported: {', '.join(TASKS)})")
+        spec = as_env_spec(env, max_episode_steps)
+        reason = self.refusal(spec)
+        if reason is not None:
+            raise ValueError(f"mujoco_batch backend cannot play this env exactly as gymnasium would: {reason}")
+        self.env_id = spec.id
         self.rules = TASKS[self.env_id]
         self.policy = population_actor
         self.nthread = int(nthread or os.cpu_count() or 1)
         workers = int(workers or min(self.nthread, 2))
         self.persistent = bool(persistent or self.rules.contact_forces)
-        self.workers = [_Worker(self.env_id, max_episode_steps, self.rules.contact_forces) for _ in range(workers)]
+        self.workers = [_Worker(spec, self.rules.contact_forces) for _ in range(workers)]
         self.threads_per_batch = max(1, self.nthread // workers)
         self.chunks_per_worker, self.min_chunk = int(chunks_per_worker), int(min_chunk)
         self._pool: ThreadPoolExecutor | None = None
@@ -170,17 +173,29 @@ class MujocoBatchBackend:
         self.model = env.model
         self.frame_skip = int(env.frame_skip)
         self.dt = env.dt  # the same float gymnasium divides by
-        self.horizon = int(max_episode_steps or reset_env.spec.max_episode_steps or 1000)
+        self.horizon = int(spec.max_episode_steps or reset_env.spec.max_episode_steps or 1000)
         self.observation_dim = int(np.prod(reset_env.observation_space.shape))
         self.action_dim = int(self.model.nu)
         self.ctrl_cost_weight = np.float32(self.constants["_ctrl_cost_weight"])  # gymnasium multiplies a float32 sum
 
     @staticmethod
-    def supports(env_id: str) -> bool:
+    def refusal(env) -> str | None:
+        """Why this backend cannot play ``env`` (an id or an :class:`~torchrl_esrl.envs.EnvSpec`)
+        exactly as the ``gym`` reference would, in a few words naming the field, or None: it
+        recomputes observations and rewards from the raw MuJoCo state by the task's own rules, so
+        it takes the tasks of :data:`TASKS` with gymnasium's defaults, no wrapper and no transform."""
         try:
-            return resolve_env_id(env_id) in TASKS
-        except Exception:  # noqa: BLE001 - unknown ids are simply not supported
-            return False
+            spec = as_env_spec(env)
+        except Exception:  # noqa: BLE001 - an id that does not resolve is not one of the tasks
+            return f"env.id: {env!r} is not a task it knows ({', '.join(TASKS)})"
+        if spec.id not in TASKS:
+            return f"env.id: {spec.id} is not a task it knows ({', '.join(TASKS)})"
+        changes = spec.changes()
+        return ", ".join(changes) if changes else None
+
+    @classmethod
+    def supports(cls, env) -> bool:
+        return cls.refusal(env) is None
 
     def chunks(self, population: int, mirrored: Mirrored | None = None) -> list[_Chunk]:
         """The population cut into chunks of (nearly) equal size: of whole pairs with ``mirrored``,

@@ -13,10 +13,10 @@ import torch
 from tensordict import TensorDict, TensorDictBase
 from tensordict.nn import TensorDictSequential
 from torchrl.collectors import Collector
-from torchrl.envs import Compose, GymEnv, TransformedEnv
+from torchrl.envs import GymWrapper, TransformedEnv
 from torchrl.modules import AdditiveGaussianModule, TanhModule
 
-from torchrl_esrl.envs import TD3_TRANSFORMS
+from torchrl_esrl.envs import describe_transform, project_transforms
 from torchrl_esrl.modules.networks import squash
 from torchrl_esrl.modules.warmup import RandomWarmup
 from torchrl_esrl.torchrl_private import collector_carrier, gym_env_of, gym_env_state, load_gym_env_state, restore_collector, unchecked_tensordict
@@ -63,11 +63,17 @@ def _refusal(env, policy, device) -> str | None:
     """Why :class:`GymTD3Collector` cannot step exactly what ``Collector`` over ``env`` would, or None."""
     if torch.device(device).type != "cpu" or (env.device is not None and torch.device(env.device).type != "cpu"):
         return f"the env and policy must be on cpu (got env {env.device}, policy {device})"
-    if not isinstance(env, TransformedEnv) or type(env.base_env) is not GymEnv:
-        return f"the env must be TransformedEnv(GymEnv) (got {type(env).__name__})"
-    transforms = tuple(type(t) for t in env.transform) if isinstance(env.transform, Compose) else (type(env.transform),)
-    if transforms != TD3_TRANSFORMS:
-        return f"the env's transforms must be {', '.join(t.__name__ for t in TD3_TRANSFORMS)} (got {', '.join(t.__name__ for t in transforms)})"
+    if not isinstance(env, TransformedEnv) or not isinstance(env.base_env, GymWrapper):
+        return f"the env must be a TransformedEnv over a gymnasium env (got {type(env).__name__})"
+    if getattr(env.base_env, "frame_skip", 1) != 1:
+        return f"frame_skip={env.base_env.frame_skip} (TorchRL's action repeat)"
+    project = TransformedEnv(env.base_env, project_transforms())
+    project.observation_spec  # noqa: B018 - resolves the transforms' keys, as the run's env has
+    if describe_transform(env.transform) != describe_transform(project.transform):
+        theirs = describe_transform(env.transform)
+        ours = describe_transform(project.transform)
+        names = [t[0].rpartition(".")[2] + ("" if t in ours[1] else "*") for t in theirs[1]] if theirs[0] == "Compose" else [theirs[0]]
+        return f"env transforms {', '.join(names)} (* : not the project's DoubleToFloat, RewardSum, StepCounter as built)"
     inner = policy.policy if isinstance(policy, RandomWarmup) else policy
     if not isinstance(inner, TensorDictSequential) or len(inner.module) != 2 or type(inner.module[1]) is not AdditiveGaussianModule:
         return "the policy must be the actor followed by AdditiveGaussianModule"

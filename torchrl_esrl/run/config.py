@@ -87,8 +87,35 @@ def _layers(cfg, field: str) -> None:
         raise ConfigError(f"{field}: {value!r} is invalid (allowed: a non-empty list of positive integers, e.g. [256, 256])")
 
 
+def check_known_keys(cfg, path: str = "") -> None:
+    """Every key of ``cfg`` is one the typed schema defines, whatever the override syntax: Hydra
+    refuses ``key=value`` for a key the schema lacks, but ``+key=value`` and ``++key=value``
+    add it, and nothing would read it. Mappings typed ``Dict[str, Any]`` or ``Any`` in the schema
+    (``env.kwargs``, ``ray.worker_kwargs``) are open."""
+    import dataclasses
+
+    from omegaconf import DictConfig, OmegaConf
+
+    schema = OmegaConf.get_type(cfg)
+    if not dataclasses.is_dataclass(schema):
+        return
+    fields = {f.name for f in dataclasses.fields(schema)}
+    for key in cfg.keys():
+        name = f"{path}{key}"
+        if not path and key == "hydra":  # Hydra's own node, beside the schema's in the launch config
+            continue
+        if key not in fields:
+            raise ConfigError(f"{name}: not a key of this config (allowed: {', '.join(sorted(fields))})")
+        if OmegaConf.is_missing(cfg, key):
+            continue
+        value = cfg.get(key)
+        if isinstance(value, DictConfig):
+            check_known_keys(value, f"{name}.")
+
+
 def validate_config(cfg) -> None:
     """Value checks of every key of ``conf/config.yaml`` (and ``conf/cem_rl.yaml``'s ``cem``)."""
+    check_known_keys(cfg)
     from torchrl_esrl.collectors.backends import LOCAL_BACKENDS, available_backends
     from torchrl_esrl.data.multibuffer import validate_ratio
     from torchrl_esrl.envs import resolve_env_id

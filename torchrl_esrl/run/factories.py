@@ -21,7 +21,7 @@ from omegaconf import DictConfig
 from torchrl.objectives import SoftUpdate, TD3Loss
 
 from torchrl_esrl.data.multibuffer import MultiBuffer
-from torchrl_esrl.envs import make_env
+from torchrl_esrl.envs import EnvSpec
 from torchrl_esrl.es.openes import OpenES
 from torchrl_esrl.collectors.backends import default_backend
 from torchrl_esrl.collectors.es_collector import ESCollector
@@ -59,8 +59,14 @@ def _pieces(cfg: DictConfig, pieces: Collection[str] | None) -> frozenset[str]:
     return fast_pieces(cfg) if pieces is None else frozenset(pieces)
 
 
+def make_env_spec(cfg: DictConfig) -> EnvSpec:
+    """The task as every part of the run plays it (``env``: id, kwargs, wrappers, transforms)."""
+    return EnvSpec.from_config(cfg.env)
+
+
 def make_train_env(cfg: DictConfig):
-    return make_env(cfg.env.id, seed=cfg.seed, max_episode_steps=cfg.env.max_episode_steps)
+    """TD3's TorchRL env (:meth:`EnvSpec.make_torchrl`), seeded with the run's seed."""
+    return make_env_spec(cfg).make_torchrl(seed=cfg.seed)
 
 
 def make_actor_critic(cfg: DictConfig, env):
@@ -183,7 +189,7 @@ def es_backend(cfg: DictConfig, pieces: Collection[str], backend: str) -> str:
     local backend for the env, or the ``gym`` reference without the ``es_physics`` piece."""
     if backend != "auto":
         return backend
-    return default_backend(cfg.env.id) if "es_physics" in pieces else "gym"
+    return default_backend(make_env_spec(cfg)) if "es_physics" in pieces else "gym"
 
 
 def make_es_collector(cfg: DictConfig, actor, pieces: Collection[str] | None = None) -> ESCollector:
@@ -200,7 +206,7 @@ def make_es_collector(cfg: DictConfig, actor, pieces: Collection[str] | None = N
         backend_kwargs = {"nthread": job_cores()}
     actor = cpu_actor(actor)
     return ESCollector(
-        cfg.env.id, actor, backend=backend, max_episode_steps=cfg.env.max_episode_steps,
+        make_env_spec(cfg), actor, backend=backend,
         seed=int(cfg.seed) + 2, population=es_population(actor, fast), **backend_kwargs,
     )
 
@@ -210,7 +216,7 @@ def make_evaluator(cfg: DictConfig, actor, pieces: Collection[str] | None = None
     gymnasium (the ``gym`` backend), on the evaluation seed stream."""
     actor = cpu_actor(actor)
     population = es_population(actor, _pieces(cfg, pieces))
-    return ESCollector(cfg.env.id, actor, backend="gym", max_episode_steps=cfg.env.max_episode_steps, seed=int(cfg.seed) + 1000, population=population)
+    return ESCollector(make_env_spec(cfg), actor, backend="gym", seed=int(cfg.seed) + 1000, population=population)
 
 
 def make_threshold(cfg: DictConfig) -> Threshold:

@@ -17,7 +17,7 @@ from pathlib import Path
 from omegaconf import DictConfig, OmegaConf
 from torchrl.checkpoint import Checkpoint
 
-from torchrl_esrl.envs import env_sizes, resolve_env_id
+from torchrl_esrl.envs import EnvSpec, env_sizes, resolve_env_id
 from torchrl_esrl.errors import ConfigError
 from torchrl_esrl.run.capacity import check_capacity, default_algorithm, estimate
 from torchrl_esrl.run.checkpoint import CHECKPOINT_DIR, newest_readable, no_readable_checkpoint
@@ -134,7 +134,7 @@ def prepare_run(cfg: DictConfig, hydra_run_dir, algorithm: str | Callable[[DictC
         cfg = OmegaConf.create(saved)
     validate_config(cfg)
     name = (algorithm(cfg) if callable(algorithm) else algorithm) or default_algorithm(cfg)
-    sizes = env_sizes(cfg.env.id, cfg.env.max_episode_steps)  # refuses tasks the algorithms cannot take
+    sizes = env_sizes(EnvSpec.from_config(cfg.env))  # refuses tasks (keywords, wrappers, transforms) the algorithms cannot take
     _check_identity(field, run_dir, name, resolve_env_id(cfg.env.id), metadata, summary)
     if saved is not None and not resume:
         before, now = _flatten({k: v for k, v in saved.items() if k not in IGNORED_ON_RESUME}), _flatten({k: v for k, v in current.items() if k not in IGNORED_ON_RESUME})

@@ -8,7 +8,7 @@ A key added to the YAML must be added here too.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any, List, Optional
+from typing import Any, Dict, List, Optional
 
 from hydra.core.config_store import ConfigStore
 from omegaconf import MISSING
@@ -18,9 +18,14 @@ SCHEMA_NAME = "es_td3_schema"
 
 @dataclass
 class EnvConfig:
+    """The task, as every part of the run plays it (torchrl_esrl/envs.py, EnvSpec)."""
+
     name: str = MISSING
     id: str = MISSING
     max_episode_steps: Optional[int] = MISSING
+    kwargs: Dict[str, Any] = field(default_factory=dict)  # gymnasium.make keyword arguments, e.g. ++env.kwargs.terminate_when_unhealthy=false
+    wrappers: List[Any] = field(default_factory=list)  # gymnasium wrappers, in order: [{_target_: gymnasium.wrappers.ClipReward, min_reward: -1, max_reward: 1}]
+    transforms: List[Any] = field(default_factory=list)  # TorchRL transforms after DoubleToFloat: [{_target_: torchrl.envs.RewardScaling, loc: 0.0, scale: 0.1}]
 
 
 @dataclass
