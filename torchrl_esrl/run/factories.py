@@ -230,3 +230,57 @@ def make_es_phase(cfg: DictConfig, es: OpenES, es_collector: ESCollector, buffer
 
 def make_overwrite_rule(cfg: DictConfig) -> OverwriteRule:
     return OverwriteRule(window=cfg.overwrite.window, mode=cfg.overwrite.mode, mix=cfg.overwrite.mix)
+
+
+def implementations(cfg: DictConfig, **components) -> dict[str, str]:
+    """What computes each piece of :data:`FAST_PIECES` in this run: ``fast``, ``reference``, or
+    ``reference (why)`` where ``implementation=fast`` asked for the fast piece and it handed over
+    (``es_physics: reference (env.wrappers: ClipReward)``). ``components`` are the recipe's
+    (``td3``, ``td3_env``, ``buffer``, ``es_collector``, ``evaluator``); a piece the run does not
+    have is left out."""
+    from torchrl_esrl.collectors.mujoco_batch import MujocoBatchBackend
+    from torchrl_esrl.collectors.td3_collector import TD3EnvState, _refusal
+
+    asked = fast_pieces(cfg)
+
+    def piece(name: str, fast: bool, why: str | None = None) -> None:
+        if fast:
+            out[name] = "fast"
+        elif name in asked:
+            out[name] = f"reference ({why})" if why else "reference"
+        else:
+            out[name] = "reference"
+
+    out: dict[str, str] = {}
+    td3 = components.get("td3")
+    if td3 is not None:
+        loss = td3.loss
+        refusal = getattr(loss, "refusal", None)
+        why = refusal() if callable(refusal) else None
+        if isinstance(loss, ManualGradTD3Loss) and why is None and not loss._manual_layout():
+            why = "networks or loss settings it does not compute"
+        piece("td3_loss", isinstance(loss, ManualGradTD3Loss) and why is None, why)
+        piece("soft_update", isinstance(td3.target_update, ForeachSoftUpdate))
+        piece("adam", td3.optimizer_impl == "fused")
+    td3_env = components.get("td3_env")
+    if isinstance(td3_env, TD3EnvState):
+        collector = td3_env.collector
+        fast = isinstance(collector, GymTD3Collector)
+        piece("td3_collector", fast, None if fast or td3 is None else _refusal(collector.env, td3.exploration_policy, cfg.device))
+    buffer = components.get("buffer")
+    if isinstance(buffer, MultiBuffer):
+        piece("buffer_writes", buffer.direct_writes)
+        piece("buffer_reads", buffer.storage.direct_reads)
+    es_collector = components.get("es_collector")
+    if isinstance(es_collector, ESCollector):
+        population = es_collector.population_actor
+        piece("es_forward", isinstance(population, PopulationActor), "the actor is not Linear layers with tanh or ReLU between them, then TanhModule")
+        backend = es_collector.backend
+        name = getattr(backend, "worker_backend", backend.name)  # a Ray backend: what its workers run
+        piece("es_physics", name == MujocoBatchBackend.name, MujocoBatchBackend.refusal(es_collector.env))
+    return out
+
+
+def implementation_line(implementations: dict[str, str]) -> str:
+    """One line naming each piece's implementation (the run's start, ``summary.json``, the run log)."""
+    return "pieces: " + ", ".join(f"{name} {what}" for name, what in implementations.items())
