@@ -161,6 +161,13 @@ def validate_config(cfg) -> None:
     _number(cfg, "es.weight_decay", low=0)
     _choice(cfg, "es.fitness_shaping", FITNESS_SHAPINGS)
     _choice(cfg, "es.backend", available_backends())
+    if cfg.es.backend == "mujoco_batch":
+        from torchrl_esrl.collectors.mujoco_batch import MujocoBatchBackend
+        from torchrl_esrl.envs import EnvSpec
+
+        reason = MujocoBatchBackend.refusal(EnvSpec.from_config(cfg.env))
+        if reason is not None:
+            raise ConfigError(f"es.backend: mujoco_batch cannot play this env exactly as gymnasium would ({reason}) (allowed: auto, gym)")
     if cfg.es.antithetic and cfg.es.population_size % 2:
         raise ConfigError(f"es.population_size: {cfg.es.population_size} is invalid with es.antithetic=true (allowed: an even positive integer)")
     if cfg.es.backend == "ray":
