@@ -134,7 +134,7 @@ def _env_refusals(spec: EnvSpec, gym_env) -> list[str]:
         own = as_env_spec(spec.id).make_gym()
         try:
             if not os.path.samefile(env.fullpath, own.unwrapped.fullpath):
-                reasons.append(f"env.kwargs.xml_file={spec.kwargs['xml_file']!r}: another model than {spec.id}'s, whose rules are not checked on it")
+                reasons.append(f"env.kwargs.xml_file={spec.kwargs['xml_file']!r}: another model than {spec.id}'s, the one its rules are checked on")
         finally:
             own.close()
     if rules.x_from_main_body:
@@ -147,6 +147,7 @@ def _env_refusals(spec: EnvSpec, gym_env) -> list[str]:
     if size != expected:
         reasons.append(f"env.kwargs: an observation of {size} entries, not the {expected} of {spec.id}'s layout")
     return reasons
+
 
 @dataclass(frozen=True)
 class _Chunk:
@@ -270,7 +271,8 @@ class MujocoBatchBackend:
             try:
                 gym_env = spec.make_gym()
             except Exception as error:  # noqa: BLE001 - gymnasium cannot make it: neither can this backend
-                return f"env.kwargs: {str(error).strip().splitlines()[0] if str(error).strip() else type(error).__name__}"
+                text = str(error).strip().splitlines()[0] if str(error).strip() else type(error).__name__
+                return text if text.startswith("env.") else f"env.kwargs: {text}"
             try:
                 reasons = _env_refusals(spec, gym_env)
             finally:
