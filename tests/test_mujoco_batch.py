@@ -1,7 +1,11 @@
 """The mujoco_batch ES backend reproduces gymnasium v5 episodes, on real MuJoCo physics."""
 from __future__ import annotations
 
+import os
+
 import gymnasium as gym
+import gymnasium.envs.mujoco
+import mujoco
 import numpy as np
 import pytest
 import torch
@@ -11,7 +15,8 @@ from torchrl_esrl.data.multibuffer import TRANSITION_KEYS
 from torchrl_esrl.collectors.backends import backend_class, default_backend
 from torchrl_esrl.collectors.es_collector import ESCollector
 from torchrl_esrl.collectors.gym_backend import GymBackend
-from torchrl_esrl.collectors.mujoco_batch import MujocoBatchBackend
+from torchrl_esrl.collectors.mujoco_batch import RENDERING_KWARGS, REPRODUCED_KWARGS, MujocoBatchBackend
+from torchrl_esrl.envs import EnvSpec, as_env_spec, constructor_keywords
 from torchrl_esrl.es.openes import OpenES
 from torchrl_esrl.modules.networks import PopulationActor, flat_parameters, make_actor
 
@@ -20,9 +25,10 @@ TERMINATING = {"Walker2d-v5", "Ant-v5", "Hopper-v5"}
 KEYS = [*TRANSITION_KEYS, "episode_return", ("collector", "traj_ids")]
 
 
-def population(env_id: str, members: int, sigma: float, seed: int = 0):
-    """A random 2x256 tanh actor and ``members`` Gaussian perturbations of it (wide ones fall early)."""
-    env = gym.make(env_id)
+def population(env: "str | EnvSpec", members: int, sigma: float, seed: int = 0):
+    """A random 2x256 tanh actor of the task (an id or a spec) and ``members`` Gaussian
+    perturbations of it (wide ones fall early)."""
+    env = as_env_spec(env).make_gym()
     torch.manual_seed(seed)
     low, high = torch.as_tensor(env.action_space.low), torch.as_tensor(env.action_space.high)
     actor = make_actor(env.observation_space.shape[0], Bounded(low, high, shape=low.shape))
@@ -205,3 +211,140 @@ def test_registered_and_chosen_by_default():
     assert isinstance(collector.backend, MujocoBatchBackend)
     generation = collector.evaluate(params[:, : collector.population_actor.num_parameters])
     assert generation.frames == 40 and collector.frames == 40
+
+
+# One line per (task, keyword arguments, outcome). The first keyword is the case's: REFUSED names
+# it in the refusal; CHANGES plays the gym reference's episodes bit for bit, and they differ from
+# those of the spec without that keyword (a keyword both backends ignored would fail here);
+# SAME plays them bit for bit, and they equal those without it (rendering settings, defaults).
+CHANGES, SAME, REFUSED = "changes", "same", "refused"
+ASSETS = os.path.join(os.path.dirname(gymnasium.envs.mujoco.__file__), "assets")
+KWARG_CASES = [
+    ("HalfCheetah-v5", {"frame_skip": 2}, CHANGES),
+    ("HalfCheetah-v5", {"forward_reward_weight": 2.0}, CHANGES),
+    ("HalfCheetah-v5", {"ctrl_cost_weight": 0.5}, CHANGES),
+    ("HalfCheetah-v5", {"reset_noise_scale": 0.5}, CHANGES),
+    ("HalfCheetah-v5", {"exclude_current_positions_from_observation": False}, CHANGES),
+    ("HalfCheetah-v5", {"xml_file": "half_cheetah.xml"}, SAME),
+    ("HalfCheetah-v5", {"xml_file": os.path.join(ASSETS, "half_cheetah.xml")}, SAME),
+    ("HalfCheetah-v5", {"xml_file": "hopper.xml"}, REFUSED),
+    ("HalfCheetah-v5", {"render_mode": "rgb_array"}, SAME),
+    ("HalfCheetah-v5", {"render_mode": "human"}, REFUSED),
+    ("HalfCheetah-v5", {"width": 64, "height": 48}, SAME),
+    ("HalfCheetah-v5", {"camera_id": 0}, SAME),
+    ("HalfCheetah-v5", {"camera_name": "track"}, SAME),
+    ("HalfCheetah-v5", {"default_camera_config": {"distance": 2.0}}, SAME),
+    ("HalfCheetah-v5", {"max_geom": 10}, SAME),
+    ("HalfCheetah-v5", {"visual_options": {int(mujoco.mjtVisFlag.mjVIS_CONTACTPOINT): True}}, SAME),
+    ("HalfCheetah-v5", {"disable_env_checker": True}, REFUSED),  # gymnasium.make's, not the task's
+    ("HalfCheetah-v5", {"max_episode_steps": 30}, REFUSED),
+    ("Swimmer-v5", {"forward_reward_weight": 3.0}, CHANGES),
+    ("Swimmer-v5", {"ctrl_cost_weight": 1.0}, CHANGES),
+    ("Swimmer-v5", {"reset_noise_scale": 0.5}, CHANGES),
+    ("Swimmer-v5", {"frame_skip": 2}, CHANGES),
+    ("Swimmer-v5", {"exclude_current_positions_from_observation": False}, CHANGES),
+    ("Walker2d-v5", {"frame_skip": 2}, CHANGES),
+    ("Walker2d-v5", {"forward_reward_weight": 0.5}, CHANGES),
+    ("Walker2d-v5", {"ctrl_cost_weight": 0.1}, CHANGES),
+    ("Walker2d-v5", {"healthy_reward": 2.0}, CHANGES),
+    ("Walker2d-v5", {"healthy_z_range": (1.2, 2.0)}, CHANGES),
+    ("Walker2d-v5", {"healthy_angle_range": (-0.2, 0.2)}, CHANGES),
+    ("Walker2d-v5", {"terminate_when_unhealthy": False, "healthy_z_range": (1.2, 2.0)}, CHANGES),
+    ("Walker2d-v5", {"reset_noise_scale": 0.1}, CHANGES),
+    ("Walker2d-v5", {"exclude_current_positions_from_observation": False}, CHANGES),
+    ("Walker2d-v5", {"xml_file": "walker2d.xml"}, REFUSED),  # the v4 model
+    ("Hopper-v5", {"frame_skip": 3}, CHANGES),
+    ("Hopper-v5", {"forward_reward_weight": 2.0}, CHANGES),
+    ("Hopper-v5", {"ctrl_cost_weight": 0.1}, CHANGES),
+    ("Hopper-v5", {"healthy_reward": 0.5}, CHANGES),
+    ("Hopper-v5", {"healthy_state_range": (-1.0, 1.0)}, CHANGES),
+    ("Hopper-v5", {"healthy_z_range": (1.2, float("inf"))}, CHANGES),
+    ("Hopper-v5", {"healthy_angle_range": (-0.05, 0.05)}, CHANGES),
+    ("Hopper-v5", {"terminate_when_unhealthy": False, "healthy_angle_range": (-0.05, 0.05)}, CHANGES),
+    ("Hopper-v5", {"reset_noise_scale": 0.05}, CHANGES),
+    ("Hopper-v5", {"exclude_current_positions_from_observation": False}, CHANGES),
+    ("Ant-v5", {"main_body": 4}, CHANGES),
+    ("Ant-v5", {"main_body": "aux_1"}, CHANGES),
+    ("Ant-v5", {"main_body": "front_left_leg"}, SAME),  # its frame is the torso's
+    ("Ant-v5", {"main_body": "torso"}, SAME),
+    ("Ant-v5", {"main_body": 14}, REFUSED),
+    ("Ant-v5", {"main_body": "tail"}, REFUSED),
+    ("Ant-v5", {"include_cfrc_ext_in_observation": False}, CHANGES),
+    ("Ant-v5", {"exclude_current_positions_from_observation": False}, CHANGES),
+    ("Ant-v5", {"contact_cost_weight": 0.05}, CHANGES),
+    ("Ant-v5", {"contact_force_range": (-0.1, 0.1)}, CHANGES),
+    ("Ant-v5", {"ctrl_cost_weight": 0.1}, CHANGES),
+    ("Ant-v5", {"forward_reward_weight": 2.0}, CHANGES),
+    ("Ant-v5", {"healthy_reward": 2.0}, CHANGES),
+    ("Ant-v5", {"healthy_z_range": (0.6, 1.0)}, CHANGES),
+    ("Ant-v5", {"terminate_when_unhealthy": False, "healthy_z_range": (0.6, 1.0)}, CHANGES),
+    ("Ant-v5", {"frame_skip": 3}, CHANGES),
+    ("Ant-v5", {"reset_noise_scale": 0.3}, CHANGES),
+]
+KWARG_STEPS, KWARG_MEMBERS = 60, 4
+KWARG_SEEDS = [13 * p + 2 for p in range(KWARG_MEMBERS)]
+
+
+def _case_id(case) -> str:
+    env_id, kwargs, outcome = case
+    shown = {key: value.replace(ASSETS, "ASSETS") if isinstance(value, str) else value for key, value in kwargs.items()}
+    return f"{env_id.split('-')[0]}-" + ",".join(f"{key}={value}" for key, value in shown.items()) + f"-{outcome}"
+
+
+def _episodes(generation) -> dict:
+    return {"lengths": generation.lengths, "returns": generation.returns, **{key: generation.transitions.get(key) for key in KEYS}}
+
+
+def _equal(a: dict, b: dict) -> bool:
+    return all(a[key].shape == b[key].shape and torch.equal(a[key], b[key]) for key in a)
+
+
+_BATCHED: dict[str, dict] = {}
+
+
+def _batched_episodes(env_id: str, kwargs: dict) -> dict:
+    """The batched backend's episodes of the case (cached: the unchanged specs serve many cases)."""
+    key = f"{env_id} {kwargs!r}"
+    if key not in _BATCHED:
+        spec = EnvSpec(env_id, kwargs, max_episode_steps=KWARG_STEPS)
+        policy, params = population(spec, KWARG_MEMBERS, sigma=0.3)
+        _BATCHED[key] = _episodes(MujocoBatchBackend(spec, policy, nthread=1, workers=1).rollout(params, KWARG_SEEDS))
+    return _BATCHED[key]
+
+
+@pytest.mark.parametrize("env_id, kwargs, outcome", KWARG_CASES, ids=[_case_id(case) for case in KWARG_CASES])
+def test_keyword_arguments_are_reproduced_bit_for_bit_or_refused_by_name(env_id, kwargs, outcome):
+    spec = EnvSpec(env_id, kwargs, max_episode_steps=KWARG_STEPS)
+    keyword = next(iter(kwargs))
+    reason = MujocoBatchBackend.refusal(spec)
+    if outcome == REFUSED:
+        assert reason is not None and f"env.kwargs.{keyword}=" in reason, reason
+        with pytest.raises(ValueError, match=f"env.kwargs.{keyword}="):
+            MujocoBatchBackend(spec, population(env_id, 1, sigma=0.0)[0], nthread=1, workers=1)
+        return
+    assert reason is None
+    policy, params = population(spec, KWARG_MEMBERS, sigma=0.3)
+    reference = _episodes(GymBackend(spec, policy).rollout(params, KWARG_SEEDS))
+    batched = _batched_episodes(env_id, kwargs)
+    for key in reference:
+        assert batched[key].shape == reference[key].shape and torch.equal(batched[key], reference[key]), key
+    without = _batched_episodes(env_id, {k: v for k, v in kwargs.items() if k != keyword})
+    assert _equal(batched, without) == (outcome == SAME)
+
+
+def test_keyword_table_covers_every_constructor_keyword():
+    """Every keyword of the five constructors and of MujocoEnv is in the backend's documented sets;
+    each task's own keywords have a line for that task, the rendering ones and xml_file a line."""
+    import inspect
+
+    from gymnasium.envs.mujoco.mujoco_env import MujocoEnv
+
+    rendering = set(inspect.signature(MujocoEnv.__init__).parameters) - {"self", "model_path", "frame_skip", "observation_space"}
+    assert rendering == RENDERING_KWARGS
+    shared = RENDERING_KWARGS | {"xml_file"}
+    for env_id in ENV_IDS:
+        own = set(constructor_keywords(env_id)) - {"kwargs"}
+        assert own <= REPRODUCED_KWARGS | RENDERING_KWARGS, env_id
+        tested = {key for task, kwargs, _ in KWARG_CASES if task == env_id for key in kwargs}
+        assert own - shared <= tested, (env_id, own - shared - tested)
+    assert shared <= {key for _, kwargs, _ in KWARG_CASES for key in kwargs}

@@ -9,9 +9,13 @@ on a batch of its own: the workers do not wait for each other within an episode.
 
 Why hand-written: gymnasium computes observations and rewards one env at a time from an
 ``MjData``; ``mujoco.batch`` gives the raw state of all simulations as one array but knows nothing
-about the tasks. The formulas below are those of ``gymnasium/envs/mujoco/*_v5.py`` with their
-default arguments (the constants are read from a gymnasium env of the task, so they cannot drift
-from it); the tests check observations, actions, rewards and flags against gymnasium.
+about the tasks. The formulas below are those of ``gymnasium/envs/mujoco/*_v5.py``; every setting
+they read (reward weights, healthy ranges, ``frame_skip``, Ant's main body, the observation
+layout) is read from the gymnasium env the backend builds from the run's
+:class:`~torchrl_esrl.envs.EnvSpec`, so it cannot drift from gymnasium's. Keyword arguments
+outside :data:`REPRODUCED_KWARGS` and :data:`RENDERING_KWARGS` are refused by
+:meth:`MujocoBatchBackend.refusal`, naming them; the tests check observations, actions, rewards
+and flags against gymnasium, per keyword.
 
 Initial states are gymnasium's own: one gymnasium env of the task is reset with each member's
 seed and its whole integration state (``mj_getState(mjSTATE_INTEGRATION)``: time, qpos, qvel,
@@ -41,13 +45,16 @@ _INTEGRATION_STATE = mujoco.mjtState.mjSTATE_INTEGRATION
 
 @dataclass(frozen=True)
 class TaskRules:
-    """What one gymnasium v5 locomotion task computes after each physics step (defaults only)."""
+    """What one gymnasium v5 locomotion task computes after each physics step; the settings it
+    reads come from the gymnasium env (:func:`~torchrl_esrl.torchrl_private.gym_mujoco_constants`)."""
 
-    skipped_qpos: int  # leading qpos entries left out of the observation (x, or x and y)
+    skipped_qpos: int  # leading qpos entries left out of the observation (x, or x and y) unless
+    # exclude_current_positions_from_observation=False
     clip_qvel: float | None  # Walker2d and Hopper clip velocities in the observation
-    x_from_body: int | None  # Ant measures progress on a body's xpos, the others on qpos[0]
+    x_from_main_body: bool  # Ant measures progress on the xpos of its main_body, the others on qpos[0]
     healthy: Callable[[np.ndarray, np.ndarray, dict], np.ndarray] | None  # (qpos, qvel, constants) -> [n] bool
-    contact_forces: bool  # Ant: clipped cfrc_ext in the observation and a contact cost
+    contact_forces: bool  # Ant: a contact cost, and clipped cfrc_ext in the observation unless
+    # include_cfrc_ext_in_observation=False
 
 
 def _walker2d_healthy(qpos, qvel, c):
@@ -72,12 +79,75 @@ def _ant_healthy(qpos, qvel, c):
 
 
 TASKS: dict[str, TaskRules] = {
-    "HalfCheetah-v5": TaskRules(1, None, None, None, False),
-    "Swimmer-v5": TaskRules(2, None, None, None, False),
-    "Walker2d-v5": TaskRules(1, 10.0, None, _walker2d_healthy, False),
-    "Hopper-v5": TaskRules(1, 10.0, None, _hopper_healthy, False),
-    "Ant-v5": TaskRules(2, None, 1, _ant_healthy, True),
+    "HalfCheetah-v5": TaskRules(1, None, False, None, False),
+    "Swimmer-v5": TaskRules(2, None, False, None, False),
+    "Walker2d-v5": TaskRules(1, 10.0, False, _walker2d_healthy, False),
+    "Hopper-v5": TaskRules(1, 10.0, False, _hopper_healthy, False),
+    "Ant-v5": TaskRules(2, None, True, _ant_healthy, True),
 }
+
+# Keyword arguments of the v5 constructors (``env.kwargs``) whose effect the backend reproduces:
+# it reads each back from the gymnasium env it builds, or it only changes gymnasium's own reset,
+# which the backend replays.
+REPRODUCED_KWARGS = frozenset({
+    "frame_skip",  # env.frame_skip (physics steps per step) and env.dt
+    "forward_reward_weight", "ctrl_cost_weight", "contact_cost_weight", "healthy_reward",
+    "terminate_when_unhealthy", "healthy_z_range", "healthy_angle_range", "healthy_state_range",
+    "contact_force_range",  # the env's constants, as its step reads them
+    "main_body",  # the body id gymnasium's data.body(main_body) resolves
+    "exclude_current_positions_from_observation", "include_cfrc_ext_in_observation",  # the observation layout
+    "reset_noise_scale",  # gymnasium's reset
+    "xml_file",  # only the task's own model file (another model is refused)
+})  # fmt: skip
+# MujocoEnv's rendering settings: no observation, reward or flag depends on them; render_mode
+# "human" is refused (gymnasium renders at every reset and step).
+RENDERING_KWARGS = frozenset({"render_mode", "width", "height", "camera_id", "camera_name", "default_camera_config", "max_geom", "visual_options"})
+
+
+def _spec_refusals(spec: EnvSpec) -> list[str]:
+    """What the spec asks that the backend does not compute, from the spec alone."""
+    if spec.id not in TASKS:
+        return [f"env.id: {spec.id} is not a task it knows ({', '.join(TASKS)})"]
+    reasons = []
+    for key, value in spec.kwargs.items():
+        if key not in REPRODUCED_KWARGS | RENDERING_KWARGS:
+            reasons.append(f"env.kwargs.{key}={value!r}: not a keyword it reproduces")
+        elif key == "render_mode" and value == "human":
+            reasons.append(f"env.kwargs.{key}={value!r}: gymnasium renders at every step")
+    return reasons + [change for change in spec.changes() if not change.startswith("env.kwargs.")]
+
+
+def _observation_layout(rules: TaskRules, constants: dict, model: mujoco.MjModel) -> tuple[int, bool, int]:
+    """(qpos entries skipped, contact forces included, observation size) as the env's
+    ``_get_obs`` builds the observation."""
+    skipped = rules.skipped_qpos if constants["_exclude_current_positions_from_observation"] else 0
+    contact_forces = rules.contact_forces and bool(constants["_include_cfrc_ext_in_observation"])
+    return skipped, contact_forces, model.nq - skipped + model.nv + (6 * (model.nbody - 1) if contact_forces else 0)
+
+
+def _env_refusals(spec: EnvSpec, gym_env) -> list[str]:
+    """What the gymnasium env built from ``spec`` computes that the backend would not."""
+    env, rules = gym_env.unwrapped, TASKS[spec.id]
+    constants = gym_mujoco_constants(env)
+    reasons = []
+    if "xml_file" in spec.kwargs:
+        own = as_env_spec(spec.id).make_gym()
+        try:
+            if not os.path.samefile(env.fullpath, own.unwrapped.fullpath):
+                reasons.append(f"env.kwargs.xml_file={spec.kwargs['xml_file']!r}: another model than {spec.id}'s, the one its rules are checked on")
+        finally:
+            own.close()
+    if rules.x_from_main_body:
+        try:
+            env.data.body(constants["_main_body"])
+        except (IndexError, KeyError, TypeError) as error:
+            reasons.append(f"env.kwargs.main_body={constants['_main_body']!r}: not a body of the model ({str(error).splitlines()[0]})")
+    size = int(np.prod(env.observation_space.shape))
+    expected = _observation_layout(rules, constants, env.model)[2]
+    if size != expected:
+        reasons.append(f"env.kwargs: an observation of {size} entries, not the {expected} of {spec.id}'s layout")
+    return reasons
+
 
 @dataclass(frozen=True)
 class _Chunk:
@@ -152,9 +222,9 @@ class MujocoBatchBackend:
         persistent: bool = False,
     ):
         spec = as_env_spec(env, max_episode_steps)
-        reason = self.refusal(spec)
-        if reason is not None:
-            raise ValueError(f"mujoco_batch backend cannot play this env exactly as gymnasium would: {reason}")
+        reasons = _spec_refusals(spec)
+        if reasons:
+            raise ValueError(f"mujoco_batch backend cannot play this env exactly as gymnasium would: {', '.join(reasons)}")
         self.env_id = spec.id
         self.rules = TASKS[self.env_id]
         self.policy = population_actor
@@ -166,32 +236,48 @@ class MujocoBatchBackend:
         self.chunks_per_worker, self.min_chunk = int(chunks_per_worker), int(min_chunk)
         self._pool: ThreadPoolExecutor | None = None
         reset_env = self.workers[0].reset_env
+        reasons = _env_refusals(spec, reset_env)
+        if reasons:
+            raise ValueError(f"mujoco_batch backend cannot play this env exactly as gymnasium would: {', '.join(reasons)}")
         env = reset_env.unwrapped
         self.constants = gym_mujoco_constants(env)  # gymnasium's own values, so the batch cannot drift from them
-        if not self.constants.get("_exclude_current_positions_from_observation", True):
-            raise ValueError("mujoco_batch backend handles the default observation only")
         self.model = env.model
+        self.skipped_qpos, self.contact_forces_in_obs, _ = _observation_layout(self.rules, self.constants, self.model)
+        # The body whose x gives Ant's progress, as gymnasium's data.body(main_body) resolves it.
+        self.x_body = int(env.data.body(self.constants["_main_body"]).id) if self.rules.x_from_main_body else None
         self.frame_skip = int(env.frame_skip)
         self.dt = env.dt  # the same float gymnasium divides by
         self.horizon = int(spec.max_episode_steps or reset_env.spec.max_episode_steps or 1000)
         self.observation_dim = int(np.prod(reset_env.observation_space.shape))
         self.action_dim = int(self.model.nu)
-        self.ctrl_cost_weight = np.float32(self.constants["_ctrl_cost_weight"])  # gymnasium multiplies a float32 sum
+        # gymnasium multiplies the float32 sum of squared actions: the product's dtype is float32
+        # for a Python number, and the weight's for a numpy one.
+        self.ctrl_cost_weight = np.float32(1) * self.constants["_ctrl_cost_weight"]
 
     @staticmethod
     def refusal(env) -> str | None:
         """Why this backend cannot play ``env`` (an id or an :class:`~torchrl_esrl.envs.EnvSpec`)
         exactly as the ``gym`` reference would, in a few words naming the field, or None: it
         recomputes observations and rewards from the raw MuJoCo state by the task's own rules, so
-        it takes the tasks of :data:`TASKS` with gymnasium's defaults, no wrapper and no transform."""
+        it takes the tasks of :data:`TASKS`, the keyword arguments of :data:`REPRODUCED_KWARGS`
+        and :data:`RENDERING_KWARGS` (decided on the gymnasium env they make), no wrapper and no
+        transform."""
         try:
             spec = as_env_spec(env)
         except Exception:  # noqa: BLE001 - an id that does not resolve is not one of the tasks
             return f"env.id: {env!r} is not a task it knows ({', '.join(TASKS)})"
-        if spec.id not in TASKS:
-            return f"env.id: {spec.id} is not a task it knows ({', '.join(TASKS)})"
-        changes = spec.changes()
-        return ", ".join(changes) if changes else None
+        reasons = _spec_refusals(spec)
+        if not reasons and spec.kwargs:
+            try:
+                gym_env = spec.make_gym()
+            except Exception as error:  # noqa: BLE001 - gymnasium cannot make it: neither can this backend
+                text = str(error).strip().splitlines()[0] if str(error).strip() else type(error).__name__
+                return text if text.startswith("env.") else f"env.kwargs: {text}"
+            try:
+                reasons = _env_refusals(spec, gym_env)
+            finally:
+                gym_env.close()
+        return ", ".join(reasons) if reasons else None
 
     @classmethod
     def supports(cls, env) -> bool:
@@ -283,8 +369,8 @@ class MujocoBatchBackend:
             first_obs[p] = worker.reset_env.reset(seed=seed)[0]
             mujoco.mj_getState(worker.model, data, row, _INTEGRATION_STATE)
             batch.state[p] = row
-            if self.rules.x_from_body is not None:
-                x_before[p] = data.xpos[self.rules.x_from_body, 0]
+            if self.x_body is not None:
+                x_before[p] = data.xpos[self.x_body, 0]
             else:
                 x_before[p] = data.qpos[0]
 
@@ -306,7 +392,8 @@ class MujocoBatchBackend:
         state_qpos = batch.bind("qpos")  # live views of the state rows
         state_qvel = batch.bind("qvel")
         ctrl = batch.bind("ctrl")
-        body_xpos = batch.bind("xpos") if rules.x_from_body is not None else None
+        x_body = self.x_body
+        body_xpos = batch.bind("xpos") if x_body is not None else None
 
         episodes = self._padded(population)
         obs_traj, actions, rewards = episodes["obs_traj"], episodes["actions"], episodes["rewards"]
@@ -318,7 +405,7 @@ class MujocoBatchBackend:
         obs_traj[:, 0] = first_obs
 
         live = np.arange(population)
-        skipped = rules.skipped_qpos
+        skipped = self.skipped_qpos
         for t in range(horizon):
             all_live = len(live) == population
             # Basic slices while every member is live: views instead of fancy-index copies.
@@ -334,8 +421,8 @@ class MujocoBatchBackend:
             batch.step(ids=None if all_live else live, nstep=self.frame_skip)
 
             qpos, qvel = state_qpos[rows], state_qvel[rows]
-            if rules.x_from_body is not None:
-                x_after = body_xpos[rows, rules.x_from_body, 0]
+            if x_body is not None:
+                x_after = body_xpos[rows, x_body, 0]
             else:
                 x_after = qpos[:, 0]
             forward_reward = c["_forward_reward_weight"] * ((x_after - x_before[rows]) / self.dt)
@@ -364,7 +451,8 @@ class MujocoBatchBackend:
                 low, high = c["_contact_force_range"]
                 clipped = np.clip(cfrc_ext[rows], low, high)
                 contact_cost = c["_contact_cost_weight"] * np.square(clipped).reshape(len(live), -1).sum(axis=1)
-                observation[:, n_pos + nv :] = clipped[:, 1:].reshape(len(live), -1)
+                if self.contact_forces_in_obs:
+                    observation[:, n_pos + nv :] = clipped[:, 1:].reshape(len(live), -1)
                 reward = reward - (ctrl_cost + contact_cost)
             else:
                 reward = reward - ctrl_cost
