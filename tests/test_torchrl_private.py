@@ -249,7 +249,7 @@ def test_gym_mujoco_constants_hold_what_each_task_rule_reads(env_id):
         needed |= {"_healthy_angle_range"} if env_id != "Ant-v5" else set()
         needed |= {"_healthy_state_range"} if env_id == "Hopper-v5" else set()
     if rules.contact_forces:
-        needed |= {"_contact_cost_weight", "_contact_force_range"}
+        needed |= {"_contact_cost_weight", "_contact_force_range", "_main_body", "_include_cfrc_ext_in_observation"}
     constants = torchrl_private.gym_mujoco_constants(gymnasium.make(env_id).unwrapped)
     missing = sorted(needed - set(constants))
     assert not missing, f"gymnasium {gymnasium.__version__} {env_id} no longer has {missing}: update torchrl_esrl/torchrl_private.py"
