@@ -8,8 +8,11 @@ test proves, part by part of the run:
 
 - each part where :func:`torchrl_esrl.run.factories.implementations` says a fast piece ran gives
   the reference's outputs up to float32 rounding (bit for bit where the project claims it: the TD3
-  collector and the buffers); where every piece of a part handed over to its reference, the fast run
-  gives the reference's outputs bit for bit. Never a fast piece that ran and computes something else;
+  collector, the buffers, the ES physics). ES episodes played by the fast population forward are
+  checked step by step: each action is the actor module's on the recorded observation, and the
+  reference env replays the recorded actions into the recorded observations, rewards and flags bit
+  for bit. Where every piece of a part handed over to its reference, the fast run gives the
+  reference's outputs bit for bit. Never a fast piece that ran and computes something else;
 - the change reached the run: the reference's outputs for the row differ from the unchanged run's
   in the parts the change must touch (every part plays the env; the loss shows in the updates), so a
   change both implementations ignore fails here.
@@ -414,6 +417,8 @@ def test_fast_computes_what_the_reference_does_or_hands_over(case):
     for part, pieces in PARTS.items():
         what = [fast.evaluation_forward] if part == "evaluation" else [fast.pieces[piece] for piece in pieces]
         label = f"{part} [{'; '.join(what)}]"
+        if part in fast.episodes:  # the same members and seeds
+            assert all(torch.equal(a, b) if isinstance(a, torch.Tensor) else a == b for a, b in zip(fast.episodes[part][1:], reference.episodes[part][1:])), part
         if part in fast.episodes and what[0] == "fast":  # the population forward ran fast
             largest[part] = check_episodes(fast, part, reference.actor, label)
         else:  # every piece handed over, or only the physics is fast (bit for bit): the reference's episodes
@@ -429,11 +434,19 @@ def test_fast_computes_what_the_reference_does_or_hands_over(case):
     assert not untouched, f"{case.id}: the reference's {untouched} are those of the unchanged run: the change did not reach them"
 
 
-def test_a_transform_with_running_statistics_is_a_one_line_config_error():
-    """VecNorm keeps running statistics that TD3's env, every ES member and every evaluation would
-    each update apart: EnvSpec.sizes() (the run's start-up check) refuses it in one line."""
-    cfg = config("fast", "halfcheetah", ("env.transforms=[{_target_:torchrl.envs.VecNorm,in_keys:[observation]}]",))
+# Changes no run can take: a one-line ConfigError at start-up (EnvSpec.sizes(), the run's check).
+REFUSED = [
+    # VecNorm keeps running statistics that TD3's env, every ES member and every evaluation would each update apart.
+    pytest.param("env.transforms=[{_target_:torchrl.envs.VecNorm,in_keys:[observation]}]", "env.transforms:", id="transform-VecNorm"),
+    # ClipAction makes the action space unbounded: the tanh actor has no bounds to squash into.
+    pytest.param("env.wrappers=[{_target_:gymnasium.wrappers.ClipAction}]", "env.wrappers:", id="wrapper-ClipAction"),
+]
+
+
+@pytest.mark.parametrize(("override", "field"), REFUSED)
+def test_a_change_no_run_can_take_is_a_one_line_config_error(override, field):
+    cfg = config("fast", "halfcheetah", (override,))
     with pytest.raises(ConfigError) as error:
         EnvSpec.from_config(cfg.env).sizes()
     message = str(error.value)
-    assert "\n" not in message and message.startswith("env.transforms:"), message
+    assert "\n" not in message and message.startswith(field), message
