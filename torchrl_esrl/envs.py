@@ -223,13 +223,15 @@ class EnvSpec:
             raise ConfigError(f"env.id: '{self.id}' cannot be made ({type(error).__name__}: {text}) (allowed: {TASKS_ALLOWED})") from None
         try:
             observation, action, limit = env.observation_space, env.action_space, env.spec.max_episode_steps if env.spec else None
+            field_name = "env.wrappers" if self.wrappers else "env.id"
+            if not isinstance(action, gym.spaces.Box) or len(action.shape) != 1 or not (np.isfinite(action.low).all() and np.isfinite(action.high).all()):
+                raise ConfigError(f"{field_name}: '{self.id}' has the action space {action} (allowed: {TASKS_ALLOWED})")
+            if not isinstance(observation, gym.spaces.Box) or len(observation.shape) != 1:
+                raise ConfigError(f"{field_name}: '{self.id}' has the observation space {observation} (allowed: {TASKS_ALLOWED})")
+            if self.wrappers:
+                self._check_wrappers(env)
         finally:
             env.close()
-        field_name = "env.wrappers" if self.wrappers else "env.id"
-        if not isinstance(action, gym.spaces.Box) or len(action.shape) != 1 or not (np.isfinite(action.low).all() and np.isfinite(action.high).all()):
-            raise ConfigError(f"{field_name}: '{self.id}' has the action space {action} (allowed: {TASKS_ALLOWED})")
-        if not isinstance(observation, gym.spaces.Box) or len(observation.shape) != 1:
-            raise ConfigError(f"{field_name}: '{self.id}' has the observation space {observation} (allowed: {TASKS_ALLOWED})")
         steps = int(self.max_episode_steps) if self.max_episode_steps is not None else limit
         observation_dim = int(observation.shape[0])
         if self.transforms:
@@ -238,22 +240,58 @@ class EnvSpec:
 
     def _check_transforms(self) -> int:
         """The observation size after the user's transforms; :class:`ConfigError` for a transform
-        that keeps running state (statistics, counters in buffers): TD3's env, every ES offspring
-        and every evaluation would each update a state of their own."""
+        that keeps state from one episode to the next (running statistics): TD3's env, every ES
+        offspring and every evaluation would each keep a state of their own."""
         env = self.make_torchrl(seed=0)
         try:
             spec = env.observation_spec.get("observation", None)
             if spec is None or len(spec.shape) != 1:
                 raise ConfigError(f"env.transforms: the observation becomes {spec} (allowed: transforms that keep a flat 'observation')")
+            env.set_seed(0)
             env.reset()
             before = _transform_state(env.transform)
-            env.rollout(3)
+            env.rollout(3, break_when_any_done=False)
+            env.set_seed(0)
+            env.reset()
             changed = [key for key, value in _transform_state(env.transform).items() if not _same(before.get(key), value)]
             if changed:
-                raise ConfigError(f"env.transforms: a transform keeps state that changes while the env steps ({changed[0]}: running statistics, a frame stack), which TD3's env, every ES offspring and every evaluation would each keep apart (allowed: transforms without such state)")
+                raise ConfigError(f"env.transforms: a transform keeps state from one episode to the next ({changed[0]}: running statistics), which TD3's env, every ES offspring and every evaluation would each keep apart (allowed: transforms whose state an episode's reset restores)")
             return int(spec.shape[0])
         finally:
             env.close()
+
+    def _check_wrappers(self, env: gym.Env) -> None:
+        """:class:`ConfigError` for a wrapper that keeps state from one episode to the next (running
+        statistics, as ``NormalizeObservation``): the same reset after a few steps must find every
+        wrapper as the first reset left it."""
+        env.reset(seed=0)
+        before = _wrapper_state(env, len(self.wrappers))
+        rng, space = np.random.default_rng(0), env.action_space
+        for _ in range(3):
+            env.step(rng.uniform(space.low, space.high).astype(space.dtype))
+        env.reset(seed=0)
+        after = _wrapper_state(env, len(self.wrappers))
+        changed = [key for key in before if before[key] != after.get(key)]
+        if changed:
+            raise ConfigError(f"env.wrappers: {changed[0]} keeps state from one episode to the next (running statistics), which TD3's env, every ES offspring and every evaluation would each keep apart (allowed: wrappers whose state an episode's reset restores)")
+
+
+def _wrapper_state(env, layers: int) -> dict:
+    """The attributes of the outer ``layers`` wrappers (the user's), but the env each wraps and what
+    cannot be pickled (functions), pickled, by ``Wrapper.attribute``."""
+    import pickle
+
+    state, layer = {}, env
+    for _ in range(layers):
+        for key, value in vars(layer).items():
+            if key == "env":
+                continue
+            try:
+                state[f"{type(layer).__name__}.{key}"] = pickle.dumps(value)
+            except Exception:  # noqa: BLE001 - lambdas, locks: no state a step changes
+                pass
+        layer = layer.env
+    return state
 
 
 def _plain_value(value):
