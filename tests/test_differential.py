@@ -440,6 +440,8 @@ REFUSED = [
     pytest.param("env.transforms=[{_target_:torchrl.envs.VecNorm,in_keys:[observation]}]", "env.transforms:", id="transform-VecNorm"),
     # ClipAction makes the action space unbounded: the tanh actor has no bounds to squash into.
     pytest.param("env.wrappers=[{_target_:gymnasium.wrappers.ClipAction}]", "env.wrappers:", id="wrapper-ClipAction"),
+    # NormalizeObservation keeps running statistics across episodes, as VecNorm does.
+    pytest.param("env.wrappers=[{_target_:gymnasium.wrappers.NormalizeObservation}]", "env.wrappers: NormalizeObservation", id="wrapper-NormalizeObservation"),
 ]
 
 
