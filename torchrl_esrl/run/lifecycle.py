@@ -322,6 +322,9 @@ def _checked(cfg: DictConfig, algorithm) -> tuple[DictConfig, Path, RunLock | No
 def _stopped(stopped: Stopped, run: Run | None, run_dir: Path, stop: StopOnSignal) -> None:
     """The end of a run stopped by a signal: where it stopped, the checkpoint it resumes from and
     the command that resumes it, in its log and on stderr; exit 128 + the signal's number."""
+    signal.setitimer(signal.ITIMER_REAL, 0)
+    for signum in StopOnSignal.SIGNALS:  # the line is written whole; the handlers are restored on the way out
+        signal.signal(signum, signal.SIG_IGN)
     name = signal.Signals(stopped.signum).name
     started = run is not None and run.checkpoint is not None
     where = f"at {run.position()}" if started else "while starting"
