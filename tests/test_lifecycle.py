@@ -2,7 +2,9 @@
 determinism, SIGKILL then resume for every recipe, bad configs as one line, NaN faults that
 stop the run and keep the last checkpoint loadable, and what users do to runs: rerun finished
 ones, kill them in their final stage, damage checkpoints, point a recipe at another run's
-directory, ask for tasks or sizes the algorithm or the machine cannot take, fill the disk."""
+directory, ask for tasks or sizes the algorithm or the machine cannot take, fill the disk (a
+file-size limit, and a real full filesystem), start a second run in a directory one is writing,
+stop runs with SIGTERM and Ctrl-C."""
 import hashlib
 import importlib.util
 import json
@@ -416,10 +418,13 @@ def damage(checkpoint, how):
     elif how == "garbage_metadata":  # the TensorDict metadata of TD3's state
         path = next(checkpoint.glob("components/*-td3/state/meta.json"))
         path.write_bytes(random.Random(1).randbytes(path.stat().st_size))
+    elif how == "same_length_garbage":  # the largest tensor file, its bytes replaced, its size kept
+        path = max((p for p in checkpoint.rglob("*.memmap")), key=lambda p: p.stat().st_size)
+        path.write_bytes(random.Random(2).randbytes(path.stat().st_size))
 
 
 @pytest.mark.e2e
-@pytest.mark.parametrize("how", ["truncated", "deleted", "garbage_manifest", "garbage_metadata"])
+@pytest.mark.parametrize("how", ["truncated", "deleted", "garbage_manifest", "garbage_metadata", "same_length_garbage"])
 def test_damaged_newest_checkpoint_falls_back_to_the_previous_one(reference, tmp_path, how):
     run_dir = killed_after_its_last_checkpoint(reference, tmp_path / "run")
     previous, newest = checkpoints(run_dir)[-2:]
@@ -600,3 +605,189 @@ def test_a_checkpoint_config_from_before_a_rename_reads_in_todays_names():
     assert in_todays_names(today) == today
     assert in_todays_names({"mode": "async", "es": {"sigma": 0.005}}) == {"mode": None, "es": {"sigma": 0.005, "schedule": "async"}}
     assert old["td3"]["fast"] is True  # the checkpoint's own dict is left as it was
+
+
+# ---------------------------------------------------------------- one writer, clean stops, a full disk
+def wait_for(condition, process, timeout=600):
+    deadline = time.monotonic() + timeout
+    while not condition():
+        assert process.poll() is None, "the run ended before the moment the test waits for"
+        assert time.monotonic() < deadline, "timed out"
+        time.sleep(0.05)
+
+
+def start(run_dir, *extra):
+    """The recipe in its own session (so that SIGINT reaches it as Ctrl-C would: to its process group)."""
+    return subprocess.Popen(command(run_dir, *extra), cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=ENV, start_new_session=True)
+
+
+@pytest.mark.e2e
+def test_a_second_run_in_a_directory_being_written_is_refused_and_a_killed_writer_does_not_block(reference, tmp_path):
+    first = start(tmp_path)
+    try:
+        wait_for(lambda: "checkpoint-000000000100" in checkpoints(tmp_path), first)
+        hydra_files = tree(tmp_path / ".hydra")
+        second = run(tmp_path)
+        line = one_line(second)
+        assert second.returncode == 2 and line.startswith(f"config error: hydra.run.dir: {tmp_path} is being written by another run (pid {first.pid} on "), line
+        assert "since " in line and "allowed" in line and not second.stdout.strip()
+        assert tree(tmp_path / ".hydra") == hydra_files  # Hydra's files are the first run's
+    finally:
+        first.send_signal(signal.SIGKILL)  # a writer that dies without a word (kill -9, a lost node)
+        first.wait()
+    result = run(tmp_path)  # the kernel released the dead writer's lock: the rerun resumes
+    assert result.returncode == 0, result.stderr[-3000:]
+    assert rows_without_wall_time(tmp_path) == rows_without_wall_time(reference)
+    record = (tmp_path / "es_td3.log").read_text()
+    assert record.count("] started: ") == 1 and record.count("] resumed at iteration ") == 1  # the refused run wrote no line
+
+
+def stop_line(stderr, name):
+    lines = [line for line in stderr.strip().splitlines() if line.startswith("stopped by")]
+    assert len(lines) == 1 and lines[0].startswith(f"stopped by {name} at iteration "), stderr[-3000:]
+    return lines[0]
+
+
+@pytest.mark.e2e
+def test_ctrl_c_and_sigterm_stop_cleanly_and_the_same_command_resumes_to_the_same_records(reference, tmp_path):
+    # Ctrl-C (SIGINT to the process group) early in iteration 1
+    process = start(tmp_path)
+    wait_for(lambda: "checkpoint-000000000100" in checkpoints(tmp_path), process)
+    os.killpg(process.pid, signal.SIGINT)
+    _, stderr = process.communicate(timeout=120)
+    assert process.returncode == 128 + signal.SIGINT, stderr[-3000:]
+    line = stop_line(stderr, "SIGINT")
+    assert f"to resume: {sys.executable} " in line and line.endswith(f"hydra.run.dir={tmp_path}") and "Traceback" not in stderr
+    assert f"] {line}" in (tmp_path / "es_td3.log").read_text()  # the run's record says it too
+    # SIGTERM in iteration 2's TD3 phase (after its first mid-phase checkpoint, frame 300)
+    process = start(tmp_path)
+    wait_for(lambda: "checkpoint-000000000301" in checkpoints(tmp_path), process)
+    process.send_signal(signal.SIGTERM)
+    _, stderr = process.communicate(timeout=120)
+    assert process.returncode == 128 + signal.SIGTERM, stderr[-3000:]
+    line = stop_line(stderr, "SIGTERM")
+    if "(in the TD3 phase)" in line:  # the step in progress finished, then a checkpoint of that point
+        written = line.split("; checkpoint ")[1].split(" written")[0]
+        assert written in checkpoints(tmp_path) and int(written.split("-")[1]) >= 301, line
+    assert not list((tmp_path / "checkpoints").glob(".*"))  # no staging folder left
+    result = run(tmp_path)
+    assert result.returncode == 0, result.stderr[-3000:]
+    assert rows_without_wall_time(tmp_path) == rows_without_wall_time(reference)
+    assert summary_without_wall_time(tmp_path) == summary_without_wall_time(reference)
+    record = (tmp_path / "es_td3.log").read_text()
+    assert record.count("] stopped by SIGINT at ") == 1 and record.count("] stopped by SIGTERM at ") == 1 and record.count("] resumed at iteration ") == 2
+
+
+@pytest.fixture
+def small_filesystem(tmp_path):
+    """``small_filesystem(size)``: a real tmpfs of ``size`` bytes, mounted for the test (root only)."""
+    mounts = []
+
+    def mount(size):
+        where = tmp_path / f"disk{len(mounts)}"
+        where.mkdir()
+        done = subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={size}", "tmpfs", str(where)], capture_output=True, text=True)
+        if done.returncode != 0:
+            pytest.skip(f"cannot mount a tmpfs here ({done.stderr.strip() or 'not root'})")
+        mounts.append(where)
+        return where
+
+    yield mount
+    for where in mounts:
+        subprocess.run(["umount", "-l", str(where)], check=False)
+
+
+@pytest.mark.e2e
+def test_a_full_filesystem_stops_the_run_keeps_the_last_checkpoint_and_a_rerun_resumes(reference, tmp_path, small_filesystem):
+    from torchrl_esrl.envs import env_sizes
+    from torchrl_esrl.run.capacity import estimate
+
+    cfg = compose_tiny("config")
+    one = estimate(cfg, "es_td3_buffers", env_sizes(cfg.env.id, cfg.env.max_episode_steps)).checkpoint
+    disk = small_filesystem((int(cfg.checkpoint.keep_last) + 1) * one + 8 * 2**20)  # room for the run, as checked before it starts
+    run_dir = disk / "run"
+    process = start(run_dir)
+    filler = disk / "filler"
+    try:
+        wait_for(lambda: "checkpoint-000000000100" in checkpoints(run_dir), process)
+        while True:  # fill the disk while the run is between two checkpoint writes
+            process.send_signal(signal.SIGSTOP)
+            if not list((run_dir / "checkpoints").glob(".*.stage-*")):
+                break
+            process.send_signal(signal.SIGCONT)
+            time.sleep(0.02)
+        kept = checkpoints(run_dir)[-1]
+        before = tree(run_dir / "checkpoints" / kept)
+        with filler.open("wb") as handle:
+            os.posix_fallocate(handle.fileno(), 0, shutil.disk_usage(disk).free - one // 2)
+    finally:
+        process.send_signal(signal.SIGCONT)
+    _, stderr = process.communicate(timeout=300)
+    lines = stderr.strip().splitlines()
+    assert process.returncode == 2 and len(lines) == 1, stderr[-3000:]
+    assert lines[0].startswith(f"checkpoint error: could not write a checkpoint in {run_dir / 'checkpoints'} (No space left on device: a checkpoint needs about "), lines[0]
+    assert f"last good checkpoint kept: {kept}" in lines[0] and "rerun the same command" in lines[0]
+    assert checkpoints(run_dir)[-1] == kept and tree(run_dir / "checkpoints" / kept) == before
+    assert not list((run_dir / "checkpoints").glob(".*"))
+    filler.unlink()  # room again
+    result = run(run_dir)
+    assert result.returncode == 0, result.stderr[-3000:]
+    assert rows_without_wall_time(run_dir) == rows_without_wall_time(reference)
+
+
+def test_a_signal_asks_for_a_stop_a_second_one_or_the_grace_period_stops_at_once(monkeypatch):
+    from torchrl_esrl.run import lifecycle
+    from torchrl_esrl.run.lifecycle import StopOnSignal, Stopped
+
+    stop = StopOnSignal().install()
+    try:
+        stop.check("nothing asked")  # no stop asked: goes on
+        os.kill(os.getpid(), signal.SIGTERM)
+        assert stop.requested
+        with pytest.raises(Stopped) as stopped:
+            stop.check("at a step boundary", lambda: Path("checkpoint-7"))
+        assert stopped.value.signum == signal.SIGTERM and not stopped.value.at_once and stopped.value.written == Path("checkpoint-7")
+        with pytest.raises(Stopped) as stopped:
+            os.kill(os.getpid(), signal.SIGINT)  # a second signal: at once
+        assert stopped.value.at_once and stopped.value.signum == signal.SIGTERM
+    finally:
+        stop.uninstall()
+    assert signal.getsignal(signal.SIGTERM) == signal.SIG_DFL
+    monkeypatch.setattr(lifecycle, "STOP_GRACE_S", 0.2)
+    stop = StopOnSignal().install()
+    try:
+        os.kill(os.getpid(), signal.SIGTERM)
+        with pytest.raises(Stopped) as stopped:
+            time.sleep(5)  # no step boundary: the grace period ends it
+        assert stopped.value.at_once
+    finally:
+        stop.uninstall()
+
+
+def test_submitits_preemption_handler_is_called_after_the_stop():
+    from torchrl_esrl.run.lifecycle import StopOnSignal, Stopped
+
+    called = []
+    previous = signal.signal(signal.SIGUSR2, lambda signum, frame: called.append(signum))  # as submitit installs it
+    stop = StopOnSignal().install()
+    try:
+        os.kill(os.getpid(), signal.SIGUSR2)
+        assert stop.requested and not called  # the run stops first...
+        with pytest.raises(Stopped):
+            stop.check("at a step boundary")
+        stop.hand_over()
+        assert called == [signal.SIGUSR2]  # ...then submitit checkpoints its job and requeues it
+    finally:
+        stop.uninstall()
+        signal.signal(signal.SIGUSR2, previous)
+
+
+def test_the_resume_command_is_the_command_with_its_run_directory(monkeypatch, tmp_path):
+    from torchrl_esrl.run.lifecycle import resume_command
+
+    monkeypatch.setattr(sys, "orig_argv", ["python", "recipes/es_td3.py", "experiment=quick"])
+    assert resume_command(tmp_path) == f"python recipes/es_td3.py experiment=quick hydra.run.dir={tmp_path}"
+    monkeypatch.setattr(sys, "orig_argv", ["python", "recipes/es_td3.py", f"hydra.run.dir={tmp_path}", "seed=1"])
+    assert resume_command(tmp_path) == f"python recipes/es_td3.py hydra.run.dir={tmp_path} seed=1"
+    monkeypatch.setattr(sys, "orig_argv", ["python", "recipes/es_td3.py", "fresh=true", "hydra.run.dir=runs/a"])
+    assert resume_command(tmp_path / "a-2") == f"python recipes/es_td3.py hydra.run.dir={tmp_path / 'a-2'}"  # not another fresh run

@@ -30,13 +30,26 @@ is saved after a numerical fault. A save that fails (disk full) raises
 :class:`~torchrl_esrl.errors.CheckpointWriteError`; TorchRL removes its staging folder and the
 previous checkpoint stays whole.
 
-A checkpoint that cannot be read (:func:`unreadable`: its manifest, a file it lists, a JSON file
-that does not parse, a tensor file of the wrong size) is skipped on restore with one line on
-stderr, and the previous one is restored instead. The manifest's metadata names the algorithm,
+Before a save, the free space of the checkpoint folder is checked against one checkpoint's size
+(``expected_bytes``, the estimate of :mod:`~torchrl_esrl.run.capacity`): a full disk stops the run
+with :class:`~torchrl_esrl.errors.CheckpointWriteError` before any byte is written. (Tensors are
+written through memory maps, and a memory-mapped write that finds no room ends the process with
+SIGBUS instead of an error.)
+
+Every checkpoint proves it is whole: its last component, ``~digests`` (:class:`DigestAdapter`),
+records the SHA-256 of every file of the other components and of the manifest's metadata,
+inside TorchRL's staging folder, so the digests are published with the files they cover. A
+checkpoint that cannot be read (:func:`unreadable`: its manifest, a file it lists, a JSON file
+that does not parse, a tensor file of the wrong size, a file or the metadata that does not
+match its digest) is skipped on restore with one line on stderr, and the previous one is
+restored instead. A checkpoint without ``~digests`` (written before they were recorded) is
+checked as before, without digests. The manifest's metadata names the algorithm,
 so that a run directory of another recipe is told apart before anything is built.
 """
 from __future__ import annotations
 
+import errno
+import hashlib
 import json
 import logging
 import math
@@ -47,7 +60,7 @@ import sys
 from pathlib import Path
 
 import torch
-from torchrl.checkpoint import Checkpoint, CheckpointError, CheckpointRotation, GlobalRNGState, StateDictCheckpointAdapter
+from torchrl.checkpoint import Checkpoint, CheckpointAdapter, CheckpointError, CheckpointRotation, GlobalRNGState, StateDictCheckpointAdapter
 
 from torchrl_esrl.errors import CheckpointWriteError, ConfigError
 
@@ -58,6 +71,57 @@ from torchrl_esrl.run.progress import RunProgress
 CHECKPOINT_DIR = "checkpoints"
 log = logging.getLogger(__name__)  # under torchrl_esrl.run: the run directory's <recipe>.log only
 CHECKPOINT_NAME = re.compile(r"checkpoint-(\d+)(\.torchrl)?")  # CheckpointRotation's entries
+DIGESTS = "~digests"  # after every other name: TorchRL saves components in name order, so this one last
+DIGEST_FILE = "digests.json"
+HASH = "sha256"  # about twice blake2b's speed here (SHA-NI); docs/runs.md
+
+
+def file_digest(path: Path) -> str:
+    """The SHA-256 of a file's bytes, remembered for the file as it is now (device, inode, size,
+    modification time), so a checkpoint checked twice in one process is read once."""
+    stat = path.stat()
+    key = (stat.st_dev, stat.st_ino, stat.st_size, stat.st_mtime_ns)
+    if key not in _digests:
+        with path.open("rb") as handle:
+            _digests[key] = hashlib.file_digest(handle, HASH).hexdigest()
+    return _digests[key]
+
+
+_digests: dict[tuple, str] = {}
+
+
+def metadata_digest(metadata) -> str:
+    """The SHA-256 of the manifest metadata, as JSON with sorted keys."""
+    return hashlib.new(HASH, json.dumps(metadata, sort_keys=True).encode()).hexdigest()
+
+
+class Digests:
+    """The ``~digests`` component: holds the metadata of the checkpoint being saved."""
+
+    def __init__(self):
+        self.metadata: dict = {}
+
+
+class DigestAdapter(CheckpointAdapter):
+    """Saves the digests of every file the checkpoint's other components wrote (the component
+    saved last, in TorchRL's staging folder) and of its metadata; loads nothing."""
+
+    adapter_id = "torchrl_esrl.digests"
+    format_version = 1
+
+    def save(self, component: Digests, path: Path, *, args, kwargs):
+        path.mkdir(parents=True, exist_ok=True)
+        root = path.parent.parent  # the checkpoint being written: <stage>/components/<this component>
+        files = {
+            file.relative_to(root).as_posix(): file_digest(file)
+            for file in sorted((root / "components").rglob("*"))
+            if file.is_file() and path not in file.parents
+        }
+        record = {"hash": HASH, "files": files, "metadata": metadata_digest(component.metadata)}
+        (path / DIGEST_FILE).write_text(json.dumps(record, indent=1, sort_keys=True) + "\n", encoding="utf-8")
+
+    def load(self, component, path, *, map_location, tensor_load_kwargs, args, kwargs):
+        return None  # checked by unreadable() before any load
 
 
 class _Value:
@@ -84,20 +148,28 @@ class RunCheckpoint:
         components: name -> object with ``state_dict``/``load_state_dict``.
     """
 
-    def __init__(self, run_dir: str | Path, config: dict, every_frames: int, keep_last: int, algorithm: str | None = None, **components):
+    def __init__(self, run_dir: str | Path, config: dict, every_frames: int, keep_last: int, algorithm: str | None = None, expected_bytes: int = 0, **components):
         self.run_dir = Path(run_dir)
+        self.expected_bytes = int(expected_bytes)  # one checkpoint's size at most; 0: no check of the free space
         self.every_frames = int(every_frames)
         self.rotation = CheckpointRotation(self.run_dir / CHECKPOINT_DIR, keep_last=keep_last)
         self.progress: RunProgress = components["progress"]
         self.config = config
         self.algorithm = algorithm
         self.components = components
-        self.checkpoint = Checkpoint(
-            rng=GlobalRNGState(),
-            logger=LoggerPosition(self.run_dir),
-            threads=_Value(lambda: {"torch": torch.get_num_threads()}, lambda s: torch.set_num_threads(int(s["torch"]))),
+        self.digests = Digests()
+        parts = {
+            "rng": GlobalRNGState(),
+            "logger": LoggerPosition(self.run_dir),
+            "threads": _Value(lambda: {"torch": torch.get_num_threads()}, lambda s: torch.set_num_threads(int(s["torch"]))),
             **components,
-        ).register_adapter(MultiBuffer, StateDictCheckpointAdapter())  # a ReplayBuffer, saved by state_dict as ever (not dump)
+        }
+        self.loaded = sorted(parts)  # what a restore loads: all but the digests
+        self.checkpoint = (
+            Checkpoint(**parts, **{DIGESTS: self.digests})
+            .register_adapter(MultiBuffer, StateDictCheckpointAdapter())  # a ReplayBuffer, saved by state_dict as ever (not dump)
+            .register_adapter(Digests, DigestAdapter())
+        )
         self._last_frames = self.progress.frames_now
 
     def latest(self) -> Path | None:
@@ -112,8 +184,11 @@ class RunCheckpoint:
                     raise FloatingPointError(f"refusing to checkpoint non-finite parameters of '{name}'")
         self._last_frames = self.progress.frames_now
         step = self.progress.frames_now + self.progress.iteration  # grows with every save
+        self._saved_step = step
         metadata = {"iteration": self.progress.iteration, "td3_frames": self.progress.frames_now, "config": self.config, "algorithm": self.algorithm}
+        self.digests.metadata = json.loads(json.dumps(metadata))  # as the manifest will read back
         try:
+            self._check_room()
             return self.rotation.save(self.checkpoint, step=step, metadata=metadata)
         except (OSError, RuntimeError) as error:
             cause = _write_failure(error)
@@ -124,6 +199,25 @@ class RunCheckpoint:
                 f"could not write a checkpoint in {self.run_dir / CHECKPOINT_DIR} ({cause}); run stopped, "
                 f"{f'last good checkpoint kept: {kept.name}' if kept else 'no earlier checkpoint'}; rerun the same command to resume once there is room"
             ) from None
+
+    def _check_room(self) -> None:
+        """ENOSPC before writing, where one checkpoint would not fit (a memory-mapped write
+        into a full filesystem would end the process with SIGBUS)."""
+        if not self.expected_bytes:
+            return
+        directory = self.run_dir / CHECKPOINT_DIR
+        directory.mkdir(parents=True, exist_ok=True)
+        free = shutil.disk_usage(directory).free
+        if free < self.expected_bytes:
+            from torchrl_esrl.run.capacity import human
+
+            raise OSError(errno.ENOSPC, f"{os.strerror(errno.ENOSPC)}: a checkpoint needs about {human(self.expected_bytes)}, {human(free)} is free")
+
+    def save_if_new(self) -> Path:
+        """:meth:`save`, unless the last save was at this very point (a stop right after one)."""
+        if getattr(self, "_saved_step", None) == self.progress.frames_now + self.progress.iteration and self.latest() is not None:
+            return self.latest()
+        return self.save()
 
     def maybe_save_mid_phase(self, *_):
         """``td3_phase`` ``on_batch`` hook: save once every ``every_frames`` TD3 frames."""
@@ -136,7 +230,7 @@ class RunCheckpoint:
         directory has no checkpoint; :class:`ConfigError` if it has some and none can be read."""
         self._remove_dead_stages()
         if path is not None:
-            self.checkpoint.load(path)
+            self.checkpoint.load(path, components=self.loaded)
             self._last_frames = self.progress.frames_now
             return Path(path)
         skipped = []
@@ -144,7 +238,7 @@ class RunCheckpoint:
             reason = unreadable(candidate)
             if reason is None:
                 try:
-                    self.checkpoint.load(candidate)  # every component again from the next one if this fails
+                    self.checkpoint.load(candidate, components=self.loaded)  # every component again from the next one if this fails
                 except CheckpointError as error:
                     reason = _first_line(error)
             if reason is not None:
@@ -178,8 +272,9 @@ def checkpoint_paths(run_dir: str | Path) -> list[Path]:
 
 def unreadable(path: str | Path) -> str | None:
     """Why the checkpoint at ``path`` cannot be restored, or None: its manifest (TorchRL's
-    check), every file it lists, every JSON file, and every tensor file's size against the
-    shape and dtype its TensorDict metadata gives. Reads no tensor data."""
+    check), every file it lists, every JSON file, every tensor file's size against the shape
+    and dtype its TensorDict metadata gives, then every file and the metadata against their
+    digests (where the checkpoint has them)."""
     path = Path(path)
     try:
         manifest = Checkpoint.manifest(path)
@@ -200,6 +295,30 @@ def unreadable(path: str | Path) -> str | None:
                     return f"{name}: {relative} does not parse ({_first_line(error)})"
                 if file.name == "meta.json" and (wrong := _wrong_tensor_size(file.parent, meta)):
                     return f"{name}: {wrong}"
+    return _wrong_digest(path, manifest)
+
+
+def _wrong_digest(path: Path, manifest: dict) -> str | None:
+    """A file of the checkpoint, or its metadata, that does not match the digest recorded when
+    it was written; None for a checkpoint without digests."""
+    components = manifest["components"]
+    if DIGESTS not in components:
+        return None
+    try:
+        record = json.loads((path / components[DIGESTS]["path"] / DIGEST_FILE).read_text(encoding="utf-8"))
+        recorded, hash_name, metadata = dict(record["files"]), record["hash"], record["metadata"]
+    except (OSError, ValueError, KeyError, TypeError) as error:
+        return f"{DIGESTS}: {DIGEST_FILE} does not parse ({_first_line(error)})"
+    if hash_name != HASH:
+        return f"{DIGESTS}: digests by {hash_name!r}, this version checks {HASH!r}"
+    if metadata != metadata_digest(manifest.get("metadata")):
+        return f"manifest: its metadata does not match its {HASH} digest"
+    listed = {f"{record_['path']}/{relative}": name for name, record_ in components.items() if name != DIGESTS for relative in record_.get("files", [])}
+    if set(listed) != set(recorded):
+        return f"{DIGESTS}: the manifest lists other files than the digests cover"
+    for relative, digest in recorded.items():
+        if file_digest(path / relative) != digest:
+            return f"{listed[relative]}: {relative.split('/', 2)[-1]} does not match its {HASH} digest"
     return None
 
 

@@ -8,11 +8,21 @@ runs with a :class:`Run` that seeds, makes kernels deterministic, logs, evaluate
 every iteration boundary and resumes from the run directory's last readable checkpoint. A
 finished run is not run again: one line says where its results are, exit 0. A config error, a
 numerical fault or a checkpoint that cannot be written ends the run with one line on stderr, exit 2.
+A run directory has one writer (:mod:`~torchrl_esrl.run.lock`): a second run that would write it
+is refused the same way, before Hydra writes anything.
+
+SIGTERM and SIGINT stop a run cleanly (:class:`StopOnSignal`): it finishes the step in progress
+(a TD3 batch with its updates, an ES generation, an iteration's end), writes a checkpoint where
+one can be written (in a TD3 phase and at an iteration boundary), says so in its log and on
+stderr with the command that resumes it, and exits 128 + the signal's number. Without a step
+boundary within :data:`STOP_GRACE_S` seconds, or on a second signal, it stops at once, from its
+last checkpoint. Under submitit, the preemption signal (SIGUSR2) stops the run the same way,
+then lets submitit requeue the job (docs/runs.md).
 
 The run's own record, ``<run dir>/<recipe>.log``, is the logger ``torchrl_esrl.run`` (Hydra's job
 logging, ``conf/hydra/job_logging/run_log.yaml``): when the run started or resumed, every finished
 iteration's line, the final returns and what stopped it (a numerical fault or a checkpoint error;
-a full disk only on stderr), each with its time.
+a full disk only on stderr; a stop by a signal), each with its time.
 """
 from __future__ import annotations
 
@@ -20,7 +30,10 @@ import errno
 import functools
 import logging
 import os
+import shlex
+import signal
 import sys
+import threading
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
@@ -31,17 +44,90 @@ from hydra.experimental.callback import Callback
 from omegaconf import DictConfig, OmegaConf, read_write
 from tqdm.auto import tqdm
 
+from torchrl_esrl.envs import env_sizes
 from torchrl_esrl.errors import CheckpointWriteError, ConfigError
+from torchrl_esrl.run.capacity import estimate
 from torchrl_esrl.run.checkpoint import CHECKPOINT_DIR, RunCheckpoint
 from torchrl_esrl.run.console import final_lines, iteration_line, print_config
 from torchrl_esrl.run.determinism import make_deterministic
 from torchrl_esrl.run.harness import RunHarness
+from torchrl_esrl.run.lock import RunLock
 from torchrl_esrl.run.metrics import read_metrics
 from torchrl_esrl.run.progress import RunProgress
-from torchrl_esrl.run.resume import Finished, fresh_run_dir, prepare_run
+from torchrl_esrl.run.resume import Finished, fresh_run_dir, holds_run, prepare_run
 
 CONF_DIR = Path(__file__).resolve().parents[2] / "conf"
 log = logging.getLogger(__name__)  # under torchrl_esrl.run: the run directory's <recipe>.log only
+STOP_GRACE_S = 20  # a signalled run that reaches no step boundary in this time stops at once
+
+
+class Stopped(BaseException):
+    """A run stopped by a signal (a BaseException, like KeyboardInterrupt: no ``except Exception`` swallows it)."""
+
+    def __init__(self, signum: int, at_once: bool = False, where: str = "", written: Path | None = None):
+        super().__init__(signal.Signals(signum).name)
+        self.signum, self.at_once, self.where, self.written = signum, at_once, where, written
+
+
+class StopOnSignal:
+    """SIGTERM and SIGINT (and submitit's SIGUSR2, where submitit handles it) ask the run to stop
+    at its next step boundary (:meth:`check`); after :data:`STOP_GRACE_S` seconds without one, or
+    on a second signal, :class:`Stopped` is raised at once in the main thread."""
+
+    SIGNALS = (signal.SIGTERM, signal.SIGINT)
+
+    def __init__(self):
+        self.signum: int | None = None
+        self.previous: dict[int, Any] = {}
+
+    def install(self) -> StopOnSignal:
+        if threading.current_thread() is not threading.main_thread():
+            return self  # signals are delivered to the main thread only
+        usr2 = signal.getsignal(signal.SIGUSR2)
+        chained = (signal.SIGUSR2,) if callable(usr2) else ()  # submitit's requeue, called after the stop
+        for signum in (*self.SIGNALS, *chained):
+            self.previous[signum] = signal.signal(signum, self._handle)
+        self.previous[signal.SIGALRM] = signal.signal(signal.SIGALRM, self._grace_over)
+        return self
+
+    def uninstall(self) -> None:
+        signal.setitimer(signal.ITIMER_REAL, 0)
+        for signum, handler in self.previous.items():
+            signal.signal(signum, handler)
+        self.previous = {}
+
+    def _handle(self, signum, _frame) -> None:
+        if self.signum is not None:
+            raise Stopped(self.signum, at_once=True)
+        self.signum = signum
+        signal.setitimer(signal.ITIMER_REAL, STOP_GRACE_S)
+
+    def _grace_over(self, _signum, _frame) -> None:
+        if self.signum is not None:
+            raise Stopped(self.signum, at_once=True)
+
+    @property
+    def requested(self) -> bool:
+        return self.signum is not None
+
+    def check(self, where: str, before_stop: Callable[[], Path | None] | None = None) -> None:
+        """A step boundary: if a stop was asked for, ``before_stop()`` (a checkpoint) and :class:`Stopped`.
+        Off the main thread (the background ES generations), only :class:`Stopped`."""
+        if self.signum is None:
+            return
+        written = None
+        if threading.current_thread() is threading.main_thread():
+            signal.setitimer(signal.ITIMER_REAL, 0)  # the checkpoint write is not cut short
+            if before_stop is not None:
+                written = before_stop()
+        raise Stopped(self.signum, where=where, written=written)
+
+    def hand_over(self) -> None:
+        """After the stop is recorded: the handler this one replaced for the signal, if it was
+        chained (submitit's checkpoint-and-requeue for SIGUSR2, which exits)."""
+        previous = self.previous.get(self.signum)
+        if self.signum == signal.SIGUSR2 and callable(previous):
+            previous(self.signum, None)
 
 
 class Run(RunHarness):
@@ -57,6 +143,7 @@ class Run(RunHarness):
         super().__init__(cfg, run_dir, algorithm, clock=self.progress.wall_time)
         make_deterministic()
         self.checkpoint: RunCheckpoint | None = None
+        self.stop = StopOnSignal()  # installed by recipe_main's main
 
     def start(self, actor, **components) -> None:
         """Start the run, or continue it: evaluate ``actor`` as built, checkpoint ``components``
@@ -66,7 +153,8 @@ class Run(RunHarness):
         self.threads = threads_used(components)
         cfg = self.cfg
         config = OmegaConf.to_container(cfg, resolve=True)
-        self.checkpoint = RunCheckpoint(self.run_dir, config, cfg.checkpoint.every_frames, cfg.checkpoint.keep_last, algorithm=self.algorithm, progress=self.progress, evaluator=self.evaluator, **components)
+        size = estimate(cfg, self.algorithm, env_sizes(cfg.env.id, cfg.env.max_episode_steps)).checkpoint  # checked before each save
+        self.checkpoint = RunCheckpoint(self.run_dir, config, cfg.checkpoint.every_frames, cfg.checkpoint.keep_last, algorithm=self.algorithm, expected_bytes=size, progress=self.progress, evaluator=self.evaluator, **components)
         restored = self.checkpoint.restore()
         if restored is not None and self.log_.path.exists():
             rows = read_metrics(self.log_.path)  # as of the checkpoint: the summary's frame counts if no iteration is left
@@ -88,23 +176,31 @@ class Run(RunHarness):
         for iteration in self.bar:
             yield iteration
             self.progress.finish_iteration()
-            self.checkpoint.save()
+            written = self.checkpoint.save()
             line = iteration_line(self.last_row, total, self.initial_return)
             log.info(line)
             if lines:
                 print(line, flush=True)
+            self.stop.check("at the end of an iteration", lambda: written)
 
     def on_td3_batch(self, frames: int, *_) -> None:
         """``td3_phase``'s ``on_batch`` hook: a checkpoint every ``checkpoint.every_frames`` TD3 frames,
-        and the phase on the progress bar (every 5% of the phase's frames)."""
+        and the phase on the progress bar (every 5% of the phase's frames); a stop point (with a checkpoint)."""
         self.checkpoint.maybe_save_mid_phase()
+        self.stop.check("in the TD3 phase", self.checkpoint.save_if_new)
         collected, total = self.progress.td3_phase.collected, int(self.cfg.td3.frames_per_iteration)
         if collected % max(1, total // 20) < frames:
             self.show_phase(f"TD3 {collected}/{total} frames")
 
     def on_es_generation(self, index: int) -> None:
-        """``es_phase``'s ``on_generation`` hook: the phase on the progress bar."""
+        """``es_phase``'s ``on_generation`` hook: the phase on the progress bar; a stop point
+        (without a checkpoint: the ES phase's state is not checkpointed mid-phase)."""
         self.show_phase(f"ES {index + 1}/{self.cfg.es.generations_per_iteration} generations")
+        self.stop.check(f"after ES generation {index + 1}/{self.cfg.es.generations_per_iteration}")
+
+    def position(self) -> str:
+        """Where the run stands, in words (the stop line)."""
+        return f"iteration {self.progress.iteration + 1}/{self.cfg.iterations}, TD3 frame {self.progress.frames_now}"
 
 
 def threads_used(components: dict) -> dict:
@@ -128,11 +224,17 @@ def recipe_main(train: Callable[[DictConfig, Run], dict], config_name: str, algo
         checked = _checked(cfg, algorithm)
         if checked is None:  # a finished multirun job: said so, nothing to do
             return
-        cfg, run_dir = checked
-        print_config(cfg)  # only with logger.print_config=true; Hydra saves it in <run dir>/.hydra/
-        run = Run(cfg, run_dir, algorithm(cfg) if callable(algorithm) else algorithm)
+        cfg, run_dir, lock = checked
+        stop = StopOnSignal().install()
+        run = None
         try:
+            print_config(cfg)  # only with logger.print_config=true; Hydra saves it in <run dir>/.hydra/
+            run = Run(cfg, run_dir, algorithm(cfg) if callable(algorithm) else algorithm)
+            run.stop = stop
             summary = train(cfg, run)
+            signal.setitimer(signal.ITIMER_REAL, 0)  # finished before a stop point: a finished run
+        except Stopped as stopped:
+            _stopped(stopped, run, run_dir, stop)
         except FloatingPointError as fault:
             _stop(f"numerical fault: {fault}; run stopped, last good checkpoint kept in {run_dir / CHECKPOINT_DIR}")
         except CheckpointWriteError as error:
@@ -142,6 +244,10 @@ def recipe_main(train: Callable[[DictConfig, Run], dict], config_name: str, algo
                 raise
             # on stderr only: the log's file is on the same full disk
             _exit(f"disk error: {error.strerror} writing {error.filename or run_dir}; run stopped, last good checkpoint kept in {run_dir / CHECKPOINT_DIR}; rerun the same command to resume once there is room")
+        finally:
+            stop.uninstall()
+            if lock is not None:
+                lock.release()  # a multirun job: its process may run other jobs next
         ending = final_lines(summary, run_dir)  # returns of the returned, TD3 and initial policies; where the files are
         log.info(f"finished: {ending}")
         print(ending)
@@ -152,6 +258,7 @@ def recipe_main(train: Callable[[DictConfig, Run], dict], config_name: str, algo
 
 # ------------------------------------------------------------------ config checks, once a launch
 _prepared: list[tuple[DictConfig | None, Path]] = []  # what ValidateBeforeRun checked, for the task function
+_held: list[RunLock] = []  # the locks ValidateBeforeRun took: held until the process ends
 _recipe: dict = {}  # the algorithm of the recipe whose main runs (recipe_main)
 
 
@@ -169,31 +276,95 @@ class ValidateBeforeRun(Callback):
                 with read_write(config.hydra):
                     config.hydra.run.dir = str(run_dir)  # run_job reads it next
         try:
-            cfg, run_dir = prepare_run(config, run_dir, _recipe.get("algorithm"))
+            cfg, run_dir, lock = _locked(config, run_dir, _recipe.get("algorithm"))
         except Finished as finished:
             print(finished, flush=True)
             raise SystemExit(0) from None
         except ConfigError as error:
             _exit(f"config error: {error}")  # Hydra turns a callback's exception into a warning: exit here
+        _held.append(lock)  # for the life of the process
         _prepared.append((cfg if config.resume else None, run_dir))
 
 
-def _checked(cfg: DictConfig, algorithm) -> tuple[DictConfig, Path] | None:
-    """The config to run (the saved one on ``resume``) and the run directory; None for a
-    finished multirun job (its line printed)."""
-    if _prepared:  # a single run, checked by ValidateBeforeRun
+def _locked(cfg: DictConfig, run_dir, algorithm) -> tuple[DictConfig, Path, RunLock]:
+    """:func:`prepare_run`, then the run directory's lock; checked again under the lock if the
+    directory holds a run (another writer may have changed it between the two)."""
+    checked, run_dir = prepare_run(cfg, run_dir, algorithm)
+    field = "resume" if cfg.resume else "hydra.run.dir"
+    lock = RunLock(run_dir).acquire(field)
+    try:
+        if holds_run(run_dir):
+            checked, run_dir = prepare_run(cfg, run_dir, algorithm)
+    except BaseException:
+        lock.release()
+        raise
+    return checked, run_dir, lock
+
+
+def _checked(cfg: DictConfig, algorithm) -> tuple[DictConfig, Path, RunLock | None] | None:
+    """The config to run (the saved one on ``resume``), the run directory and, for a multirun
+    job, the lock it holds until the job ends; None for a finished multirun job (its line printed)."""
+    if _prepared:  # a single run, checked (and locked) by ValidateBeforeRun
         saved, run_dir = _prepared.pop()
-        return (cfg if saved is None else saved), run_dir
+        return (cfg if saved is None else saved), run_dir, None
     run_dir = HydraConfig.get().runtime.output_dir  # a multirun job: Hydra has written its files there
     if cfg.get("fresh") and not cfg.resume:
         run_dir = fresh_run_dir(run_dir)
     try:
-        return prepare_run(cfg, run_dir, algorithm)
+        return _locked(cfg, run_dir, algorithm)
     except Finished as finished:
         print(finished, flush=True)
         return None
     except ConfigError as error:
         _exit(f"config error: {error}")
+
+
+def _stopped(stopped: Stopped, run: Run | None, run_dir: Path, stop: StopOnSignal) -> None:
+    """The end of a run stopped by a signal: where it stopped, the checkpoint it resumes from and
+    the command that resumes it, in its log and on stderr; exit 128 + the signal's number."""
+    signal.setitimer(signal.ITIMER_REAL, 0)
+    for signum in StopOnSignal.SIGNALS:  # the line is written whole; the handlers are restored on the way out
+        signal.signal(signum, signal.SIG_IGN)
+    name = signal.Signals(stopped.signum).name
+    started = run is not None and run.checkpoint is not None
+    where = f"at {run.position()}" if started else "while starting"
+    if stopped.at_once:
+        where += f" (no step boundary within {STOP_GRACE_S} s, or a second signal)"
+    elif stopped.where:
+        where += f" ({stopped.where})"
+    latest = run.checkpoint.latest() if started else None
+    if stopped.written is not None:
+        saved = f"checkpoint {stopped.written.name} written"
+    elif latest is not None:
+        saved = f"no checkpoint here, it resumes from {latest.name}"
+    else:
+        saved = "no checkpoint yet, it starts again"
+    message = f"stopped by {name} {where}; {saved}; to resume: {resume_command(run_dir)}"
+    log.warning(message)
+    print(message, file=sys.stderr, flush=True)
+    stop.hand_over()  # submitit: requeue the job (exits)
+    raise SystemExit(128 + stopped.signum)
+
+
+def resume_command(run_dir: Path) -> str:
+    """The command line that continues the run in ``run_dir``: the one that started it, with the
+    run (or sweep) directory spelled out where it came from the config (a timestamp) and
+    without ``fresh=true`` (which would start another)."""
+    argv = list(getattr(sys, "orig_argv", [sys.executable, *sys.argv]))
+    multirun = any(a in ("-m", "--multirun") for a in argv)
+    try:
+        hydra_cfg = HydraConfig.get()
+    except ValueError:
+        hydra_cfg = None
+    if multirun:
+        key, value = "hydra.sweep.dir", (hydra_cfg.sweep.dir if hydra_cfg is not None else None)
+    else:
+        key, value = "hydra.run.dir", run_dir
+    if any(a.startswith("fresh=") for a in argv) and not multirun:
+        argv = [a for a in argv if not a.startswith("fresh=") and not a.startswith(f"{key}=")]
+    if value is not None and not any(a.startswith(f"{key}=") for a in argv):
+        argv.append(f"{key}={Path(str(value)).absolute()}")
+    return shlex.join(argv)
 
 
 def _exit(message: str) -> None:
