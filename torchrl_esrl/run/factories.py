@@ -236,8 +236,8 @@ def implementations(cfg: DictConfig, **components) -> dict[str, str]:
     """What computes each piece of :data:`FAST_PIECES` in this run: ``fast``, ``reference``, or
     ``reference (why)`` where ``implementation=fast`` asked for the fast piece and it handed over
     (``es_physics: reference (env.wrappers: ClipReward)``). ``components`` are the recipe's
-    (``td3``, ``td3_env``, ``buffer``, ``es_collector``, ``evaluator``); a piece the run does not
-    have is left out."""
+    (``td3``, ``td3_env``, ``buffer``, ``es_collector``; others are ignored); a piece the run
+    does not have is left out."""
     from torchrl_esrl.collectors.mujoco_batch import MujocoBatchBackend
     from torchrl_esrl.collectors.td3_collector import TD3EnvState, _refusal
 

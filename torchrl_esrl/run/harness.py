@@ -67,6 +67,7 @@ class RunHarness:
         self.returns_text = ""  # the last evaluation, shown on the bar
         self.last_row: dict = {}
         self.threads: dict[str, int] = {}  # the phases' thread counts (Run.start), for summary.json
+        self.pieces: dict[str, str] = {}  # what computes each piece of the run (Run.start), for summary.json
 
     @property
     def wall_time_s(self) -> float:
@@ -142,6 +143,8 @@ class RunHarness:
         summary["initial_return"] = self.initial_return
         if self.threads:
             summary["threads"] = self.threads
+        if self.pieces:
+            summary["pieces"] = self.pieces
         summary["wall_time_s"] = self.wall_time_s
         plot_run(self.run_dir, summary)  # learning_curve.png
         write_json(self.run_dir / "summary.json", summary)  # last, atomically: a run with a summary has finished

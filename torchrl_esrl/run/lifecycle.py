@@ -44,12 +44,13 @@ from hydra.experimental.callback import Callback
 from omegaconf import DictConfig, OmegaConf, read_write
 from tqdm.auto import tqdm
 
-from torchrl_esrl.envs import env_sizes
+from torchrl_esrl.envs import EnvSpec, env_sizes
 from torchrl_esrl.errors import CheckpointWriteError, ConfigError
 from torchrl_esrl.run.capacity import estimate
 from torchrl_esrl.run.checkpoint import CHECKPOINT_DIR, RunCheckpoint
 from torchrl_esrl.run.console import final_lines, iteration_line, print_config
 from torchrl_esrl.run.determinism import make_deterministic
+from torchrl_esrl.run.factories import implementation_line, implementations
 from torchrl_esrl.run.harness import RunHarness
 from torchrl_esrl.run.lock import RunLock
 from torchrl_esrl.run.metrics import read_metrics
@@ -153,7 +154,7 @@ class Run(RunHarness):
         self.threads = threads_used(components)
         cfg = self.cfg
         config = OmegaConf.to_container(cfg, resolve=True)
-        size = estimate(cfg, self.algorithm, env_sizes(cfg.env.id, cfg.env.max_episode_steps)).checkpoint  # checked before each save
+        size = estimate(cfg, self.algorithm, env_sizes(EnvSpec.from_config(cfg.env))).checkpoint  # checked before each save
         self.checkpoint = RunCheckpoint(self.run_dir, config, cfg.checkpoint.every_frames, cfg.checkpoint.keep_last, algorithm=self.algorithm, expected_bytes=size, progress=self.progress, evaluator=self.evaluator, **components)
         restored = self.checkpoint.restore()
         if restored is not None and self.log_.path.exists():
@@ -164,6 +165,10 @@ class Run(RunHarness):
             log.info(f"started: {what}")
         else:
             log.info(f"resumed at iteration {self.progress.iteration + 1} from {restored}: {what}")
+        self.pieces = implementations(cfg, **components)  # what computes each piece, and why a fast one handed over
+        line = implementation_line(self.pieces)
+        log.info(line)
+        print(line, flush=True)
 
     def iterations(self, desc: str) -> Iterator[int]:
         """The outer loop from where the run stands; after each iteration's body, a checkpoint and,
