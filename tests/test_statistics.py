@@ -359,3 +359,16 @@ def test_miniature_overwrites_and_paired_counts_match_the_records():
     paired = {env: tuple(rows[(env, "es_td3_buffers")][k] for k in ("es_above_td3_actor", "es_equal_td3_actor", "es_below_td3_actor"))
               for env in ("Ant-v5", "HalfCheetah-v5", "Swimmer-v5", "Walker2d-v5")}
     assert paired == {"Ant-v5": (4, 0, 1), "HalfCheetah-v5": (2, 3, 0), "Swimmer-v5": (5, 0, 0), "Walker2d-v5": (5, 0, 0)}
+
+
+RESULTS_PAGE = Path(__file__).resolve().parents[1] / "docs" / "results.md"
+
+
+@pytest.mark.skipif(not RESULTS_PAGE.exists(), reason="no results page in this checkout")
+def test_the_results_page_copies_its_generated_tables_unchanged():
+    import re
+
+    blocks = re.findall(r"<!-- ((?:overview|miniature|paper)/[\w.]+) -->\n(.*?)\n<!-- /\1 -->", RESULTS_PAGE.read_text(), flags=re.S)
+    assert len(blocks) >= 5
+    for path, body in blocks:
+        assert body == (RESULTS_PAGE.parent / "results" / path).read_text().rstrip(), path

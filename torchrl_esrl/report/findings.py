@@ -135,7 +135,7 @@ def summary_table(runs: list[dict], results: list[dict], pairwise: list[dict], o
         cells = {}
         for key in independent_rows(groups, env):
             r = by_key[(env, *key)]
-            cell = f"{r['iqm']:.1f} {ci_text(r['iqm_ci_low'], r['iqm_ci_high'], 1)}"
+            cell = f"{r['iqm']:.1f} {ci_text(r['iqm_ci_low'], r['iqm_ci_high'], 1)}" if r["runs"] > 1 else f"{r['mean']:.1f}: one run"
             if (env, *key) in counts:
                 cell += f"; overwritten in {counts[(env, *key)]['overwritten_runs']}/{counts[(env, *key)]['runs']}"
             cells[key] = cell
@@ -153,8 +153,8 @@ def write_summary_table(rows: list[dict], out_dir: Path) -> Path:
     families = ", ".join(f"{r['env']}: {r['pairs']}" for r in rows)
     lines += [
         "",
-        f"Final return of the returned policy (the ES mean for the ES rows), IQM over {' or '.join(map(str, runs))} runs with its 95% bootstrap CI",
-        "(results.md); overwritten in k/n: runs whose ES mean the TD3 actor replaced at least once (overwrites.md). Differences:",
+        f"Final return of the returned policy (the ES mean for the ES rows), IQM over {' or '.join(map(str, runs))} runs with its 95% bootstrap CI"
+        " (results.md; a row of one run: its final return); overwritten in k/n: runs whose ES mean the TD3 actor replaced at least once (overwrites.md). Differences:",
         f"two-sided permutation test of the means with Holm's correction across the task's tested pairs ({families}; pairwise.md).",
         "No difference called means none shown, not that the rows are equal.",
     ]
@@ -174,7 +174,7 @@ def single_runs(runs: list[dict]) -> list[dict]:
 def _value(row: dict, key: str, digits: int = 1) -> str:
     value = row.get(key)
     if isinstance(value, bool):
-        return "yes" if value else ""
+        return "yes" if value else "no"
     return f"{value:.{digits}f}" if isinstance(value, float) and not math.isnan(value) else ("-" if value in (None, "") else str(value))
 
 
@@ -187,13 +187,14 @@ def write_iterations(runs: list[dict], out_dir: Path) -> Path | None:
     for run in chosen:
         s, rows = run["summary"], run["metrics"]
         es_td3 = "td3_eval_return" in rows[0]
-        lines += [f"## {s['env']}, {label(s['algorithm'], ratio_text(s))}, seed {s['seed']}: one run", ""]
+        lines += [f"### {s['env']}, {label(s['algorithm'], ratio_text(s))}, seed {s['seed']}: one run", ""]
         facts = [f"final return {s['final_return']:.1f} ({s.get('final_episodes', '?')} episodes)"]
         if s.get("final_td3_actor_return") is not None:
             facts.append(f"its TD3 actor {s['final_td3_actor_return']:.1f}")
         if s.get("initial_return") is not None:
             facts.append(f"the initial policy {s['initial_return']:.1f}")
-        facts += [f"{key.replace('_', ' ')} {s[key]:,}" for key in ("overwrites", "td3_updates", "td3_frames", "es_frames") if isinstance(s.get(key), int)]
+        names = {"overwrites": "overwrites", "td3_updates": "TD3 updates", "td3_frames": "TD3 frames", "es_frames": "ES frames"}
+        facts += [f"{name} {s[key]:,}" for key, name in names.items() if isinstance(s.get(key), int)]
         lines += ["; ".join(facts) + ".", ""]
         header = ["iteration", "returned policy"] + (["TD3 actor", "ES mean overwritten"] if es_td3 else [])
         header += ["TD3 updates", "ES frames", "training clock (s)", "iteration (s)"]

@@ -31,7 +31,8 @@ TABLE_COLUMNS = ("env", "algorithm", "ratio", "runs", "td3_frames", "es_frames",
 
 
 def _methods(sizes) -> str:
-    return "; ".join(f"{n} runs: {bootstrap_method(n)}" for n in sorted(set(sizes)) if n > 1)
+    text = "; ".join(f"{n} runs: {bootstrap_method(n)}" for n in sorted(set(sizes)) if n > 1)
+    return text or "no row has two runs: no CI"
 
 
 def results_table(runs: list[dict]) -> list[dict]:
