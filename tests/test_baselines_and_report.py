@@ -139,7 +139,16 @@ def test_report_table_matches_the_runs_and_writes_figures(runs, tmp_path):
     assert "| HalfCheetah-v5 | TD3 | 2 |" in markdown and "| HalfCheetah-v5 | ES-TD3Buffers 0.5:0.2:0.3: its TD3 actor | 1 |" in markdown
     with (tmp_path / "improvement.csv").open() as handle:  # P(ES-TD3Buffers 0.5:0.2:0.3 > row), every other row
         improvement = {(row["other_algorithm"], row["other_ratio"]): row for row in csv.DictReader(handle)}
-    assert set(improvement) == set(table) - {("es_td3_buffers", "0.5:0.2:0.3")}
+    # every other row but its own TD3 actor (the same runs: counted by run in overwrites.md)
+    assert set(improvement) == set(table) - {("es_td3_buffers", "0.5:0.2:0.3"), ("es_td3_buffers/td3_actor", "0.5:0.2:0.3")}
+    with (tmp_path / "overwrites.csv").open() as handle:  # one row per ES-TD3 row, its runs counted
+        overwrites = {(row["algorithm"], row["ratio"]): row for row in csv.DictReader(handle)}
+    assert set(overwrites) == {key for key in table if key[0].startswith("es_td3") and "/" not in key[0]}
+    for (algorithm, ratio), row in overwrites.items():
+        mine = [r for r in per_run if r["algorithm"] == algorithm and r["ratio"] == ratio]
+        assert int(row["overwritten_runs"]) == sum(int(r["overwrites"]) > 0 for r in mine)
+        assert int(row["es_above_td3_actor"]) == sum(float(r["final_return"]) > float(r["final_td3_actor_return"]) for r in mine)
+    assert "| iteration | returned policy | TD3 actor | ES mean overwritten |" in (tmp_path / "iterations.md").read_text()  # the one-run rows
     mine = float(table[("es_td3_buffers", "0.5:0.2:0.3")]["mean"])
     for (algorithm, ratio), row in improvement.items():  # one reference run: P is 0, 0.5 or 1 against each run
         others = [float(r["final_return"]) for r in per_run if r["algorithm"] == algorithm and r["ratio"] == ratio] if "/" not in algorithm else None

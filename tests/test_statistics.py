@@ -206,3 +206,169 @@ def test_a_task_where_td3_stays_at_the_initial_policy_is_left_out_of_the_aggrega
     assert all(r["tasks"] == 2 for r in rows)
     write_aggregate_table(rows, runs, tmp_path)
     assert "Left out (no TD3 row, no recorded initial returns, or TD3 not above the initial policy): C." in (tmp_path / "aggregate.md").read_text()
+
+
+# --- exact bootstrap, paired count, what the overwrites let a run say, the overview --------------------------
+from torchrl_esrl.report import overview_rows, overwrite_table, summary_table, write_iterations, write_overview  # noqa: E402
+from torchrl_esrl.report.statistics import (aggregate_iqm, aggregate_probability_of_improvement, paired_comparison,  # noqa: E402
+                                            stratified_interval, weighted_quantiles)
+
+MINIATURE = Path(__file__).resolve().parents[1] / "docs" / "results" / "runs" / "miniature"
+PAPER_RUNS = Path(__file__).resolve().parents[1] / "docs" / "results" / "runs" / "paper"
+
+
+def brute_force_quantiles(statistics_of_every_resample) -> list[float]:
+    return list(np.quantile(np.asarray(statistics_of_every_resample), [0.025, 0.975], method="inverted_cdf"))
+
+
+def test_exact_iqm_ci_is_the_quantiles_over_every_resample():
+    from scipy import stats
+
+    values = np.array([3.0, -1.0, 10.0, 4.5])
+    every = [stats.trim_mean(values[list(chosen)], 0.25) for chosen in itertools.product(range(4), repeat=4)]  # 4^4 = 256
+    assert list(iqm_confidence_interval(values)) == pytest.approx(brute_force_quantiles(every))
+
+
+def test_exact_iqm_ci_of_five_recorded_runs_differs_from_two_thousand_draws():
+    # HalfCheetah-v5 OpenAI-ES, miniature seeds 0-4: 2,000 random draws gave an upper end of 2290.3
+    values = [900.902617, -0.398782951, 2539.86408, 0.110290363, 2165.53260]
+    low, high = iqm_confidence_interval(values)
+    assert low == pytest.approx(-0.229, abs=1e-3) and high == pytest.approx(2415.087, abs=1e-2)
+
+
+def test_weighted_quantiles_equal_the_quantiles_of_the_repeated_values():
+    rng = np.random.default_rng(5)
+    for _ in range(20):
+        values, weights = rng.integers(0, 6, 30).astype(float), rng.integers(1, 9, 30)  # ties on purpose
+        expected = np.quantile(np.repeat(values, weights), [0.025, 0.975], method="inverted_cdf")
+        assert list(weighted_quantiles(values, weights)) == list(expected)
+
+
+def test_exact_probability_of_improvement_ci_enumerates_every_pair_of_resamples():
+    x, y = np.array([1.0, 3.0, 4.0]), np.array([2.0, 2.0, 3.0, 5.0])
+    every = []
+    for a in itertools.product(range(3), repeat=3):  # 27 x 256 pairs
+        for b in itertools.product(range(4), repeat=4):
+            xa, yb = x[list(a)], y[list(b)]
+            every.append(np.mean((xa[:, None] > yb[None, :]) + 0.5 * (xa[:, None] == yb[None, :])))
+    point, low, high = probability_of_improvement(x, y)
+    assert point == pytest.approx(np.mean((x[:, None] > y[None, :]) + 0.5 * (x[:, None] == y[None, :])))
+    assert [low, high] == pytest.approx(brute_force_quantiles(every))
+    assert low < point < high
+
+
+def test_vectorised_aggregate_statistics_equal_rliable_on_each_resample():
+    from rliable import metrics
+
+    rng = np.random.default_rng(2)
+    x, y = rng.normal(size=(7, 5, 3)), rng.normal(size=(7, 4, 3))
+    x[:, 0] = y[:, 0, :]  # ties
+    assert aggregate_iqm(x) == pytest.approx([metrics.aggregate_iqm(m) for m in x])
+    assert aggregate_probability_of_improvement(x[:, :4], y) == pytest.approx([metrics.probability_of_improvement(a, b) for a, b in zip(x[:, :4], y)])
+    point, low, high = stratified_interval([x[0]], aggregate_iqm)
+    assert low < point < high and (point, low, high) == stratified_interval([x[0]], aggregate_iqm)  # a function of its data
+
+
+def test_paired_comparison_counts_runs_not_pairs_of_runs():
+    es, actor = [10.0, 5.0, 7.0, 7.0, 1.0], [9.0, 5.0, 8.0, 7.0, 0.0]
+    assert paired_comparison(es, actor) == {"runs": 5, "above": 2, "ties": 2, "below": 1, "probability": pytest.approx(0.6)}
+    # unpaired, the same numbers give another answer: every run of x against every run of y
+    assert probability_of_improvement(es, actor)[0] != pytest.approx(0.6)
+    with pytest.raises(ValueError):
+        paired_comparison([1.0, 2.0], [1.0])
+
+
+def es_td3_record(env, algorithm, seed, final, actor, overwrites):
+    record = run_record(env, algorithm, seed, final)
+    record["summary"].update(final_td3_actor_return=actor, overwrites=overwrites)
+    return record
+
+
+def test_overwrite_table_finds_runs_the_buffers_could_not_reach_and_the_summary_marks_their_differences():
+    runs = [run_record("A", "es", s, 100.0 + s) for s in range(5)] + [run_record("A", "td3", s, 10.0 + s) for s in range(5)]
+    runs += [es_td3_record("A", "es_td3_shared", s, 100.0 + s if s < 4 else 120.0, 50.0, 0) for s in range(5)]  # never overwritten
+    runs += [es_td3_record("A", "es_td3_buffers", s, 200.0 + s, 200.0 + s if s else 150.0, 0 if s == 2 else 3) for s in range(5)]
+    rows = {r["algorithm"]: r for r in overwrite_table(runs)}
+    shared, buffers = rows["es_td3_shared"], rows["es_td3_buffers"]
+    assert (shared["overwritten_runs"], shared["never_overwritten_seeds"], shared["same_as_es_seeds"]) == (0, "0 1 2 3 4", "0 1 2 3")
+    assert (buffers["overwritten_runs"], buffers["never_overwritten_seeds"], buffers["same_as_es_seeds"]) == (4, "2", "")
+    assert (buffers["es_above_td3_actor"], buffers["es_equal_td3_actor"], buffers["es_below_td3_actor"]) == (1, 4, 0)
+    from torchrl_esrl.report import results_table
+
+    (summary,) = summary_table(runs, results_table(runs), pairwise_table(runs), overwrite_table(runs))
+    differences = summary["differences"].split("; ")
+    assert any(d.startswith("ES-TD3 (one shared buffer) > TD3") and "never overwrote its ES mean" in d for d in differences)
+    assert any(d.startswith("ES-TD3Buffers 0.5:0.2:0.3 > TD3") and "never" not in d for d in differences)
+
+
+def test_overview_cells_without_a_record_hold_no_number(tmp_path):
+    runs = [run_record("Walker2d-v5", "es_td3_buffers", 0, 6639.1)]
+    runs[0]["summary"].update(experiment="paper", td3_frames=2_000_000, es_frames=109_803_211)
+    runs += [run_record("Walker2d-v5", "td3", s, 400.0 + s) for s in range(5)]
+    for r in runs[1:]:
+        r["summary"].update(experiment="miniature", td3_frames=80_000, es_frames=0)
+    rows, experiments = overview_rows(runs, {("Walker2d-v5", "td3", "paper")})
+    assert experiments == ["paper", "miniature"]
+    cells = {(r["env"], r["algorithm"], r["experiment"]): r for r in rows}
+    assert cells[("Walker2d-v5", "td3", "paper")]["status"] == "running" and "mean" not in cells[("Walker2d-v5", "td3", "paper")]
+    assert cells[("Walker2d-v5", "es_td3_buffers", "miniature")]["status"] == "not run"
+    assert cells[("Walker2d-v5", "td3", "miniature")]["runs"] == 5
+    _, md = write_overview(runs, tmp_path, {("Walker2d-v5", "td3", "paper")})
+    text = md.read_text()
+    assert "| Walker2d-v5 (Walker) | ES-TD3Buffers 0.5:0.2:0.3 | 2217 (std 1454, median 1764) | 6639.1: one run (seed 0), 2M TD3 + 109.8M ES frames | not run |" in text
+    assert "| Walker2d-v5 (Walker) | TD3 | 3808 (std 339, median 3882) | running | IQM 402.0" in text
+
+
+PAPER_TEX = Path(__file__).resolve().parents[2] / "shared" / "paper" / "es_td3buffers.tex"
+
+
+@pytest.mark.skipif(not PAPER_TEX.exists(), reason="the paper's source is not beside this checkout")
+def test_paper_table_1_is_the_papers():
+    import re
+
+    from torchrl_esrl.report import PAPER_TABLE_1
+    from torchrl_esrl.report.overview import PAPER_NAMES
+
+    tex = PAPER_TEX.read_text()
+    table = tex[tex.index(r"\label{tab:baselines}"):tex.index(r"\end{tabular}")]
+    columns = ("td3", "cem", "erl", "cem_rl", "es_td3_buffers")
+    numbers = [[int(v) for v in re.findall(r"\d+", line.split("&", 2)[2])] for line in table.splitlines() if re.search(r"(Mean|Std\.|Median) *&", line)]
+    assert len(numbers) == 12
+    for block, paper_name in enumerate(("HalfCheetah", "Ant", "Swimmer", "Walker")):
+        env = next(e for e, name in PAPER_NAMES.items() if name == paper_name)
+        mean, std, median = numbers[3 * block:3 * block + 3]
+        assert {c: (mean[i], std[i], median[i]) for i, c in enumerate(columns)} == PAPER_TABLE_1[env]
+
+
+@pytest.mark.skipif(not (PAPER_RUNS / "walker2d" / "es_td3_seed0").exists(), reason="the paper-budget record is not in this checkout")
+def test_iterations_table_of_the_paper_run_has_every_iteration_under_its_number(tmp_path):
+    runs = find_runs([PAPER_RUNS / "walker2d" / "es_td3_seed0"])
+    text = write_iterations(runs, tmp_path).read_text()
+    rows = [line for line in text.splitlines() if line.startswith("| ") and line[2].isdigit()]
+    assert [int(r.split("|")[1]) for r in rows] == list(range(1, 21))
+    assert rows[13].startswith("| 14 | 6236.6 | 5521.3 |") and rows[15].startswith("| 16 | 6465.8 | 6019.6 |")
+
+
+@pytest.mark.skipif(not MINIATURE.exists(), reason="the recorded miniature set is not in this checkout")
+def test_miniature_overwrites_and_paired_counts_match_the_records():
+    runs = find_runs([MINIATURE])
+    rows = {(r["env"], r["algorithm"]): r for r in overwrite_table(runs)}
+    assert rows[("Ant-v5", "es_td3_shared")]["overwritten_runs"] == 0 and rows[("Ant-v5", "es_td3_shared")]["same_as_es_seeds"] == "0 1 2 4"
+    assert rows[("Ant-v5", "es_td3_buffers")]["never_overwritten_seeds"] == "4"
+    assert all(rows[("Swimmer-v5", a)]["never_overwritten_seeds"] == "3" for a in ("es_td3_buffers", "es_td3_shared"))
+    paired = {env: tuple(rows[(env, "es_td3_buffers")][k] for k in ("es_above_td3_actor", "es_equal_td3_actor", "es_below_td3_actor"))
+              for env in ("Ant-v5", "HalfCheetah-v5", "Swimmer-v5", "Walker2d-v5")}
+    assert paired == {"Ant-v5": (4, 0, 1), "HalfCheetah-v5": (2, 3, 0), "Swimmer-v5": (5, 0, 0), "Walker2d-v5": (5, 0, 0)}
+
+
+RESULTS_PAGE = Path(__file__).resolve().parents[1] / "docs" / "results.md"
+
+
+@pytest.mark.skipif(not RESULTS_PAGE.exists(), reason="no results page in this checkout")
+def test_the_results_page_copies_its_generated_tables_unchanged():
+    import re
+
+    blocks = re.findall(r"<!-- ((?:overview|miniature|paper)/[\w.]+) -->\n(.*?)\n<!-- /\1 -->", RESULTS_PAGE.read_text(), flags=re.S)
+    assert len(blocks) >= 5
+    for path, body in blocks:
+        assert body == (RESULTS_PAGE.parent / "results" / path).read_text().rstrip(), path

@@ -27,7 +27,7 @@ from omegaconf import DictConfig
 from torchrl_esrl.envs import quiet_logs
 from torchrl_esrl.collectors.es_collector import ESCollector
 from torchrl_esrl.modules.networks import flat_parameters
-from torchrl_esrl.report import plot_run
+from torchrl_esrl.run.plot import plot_run
 from torchrl_esrl.run.console import returns_text
 from torchrl_esrl.run.determinism import seed_everything
 from torchrl_esrl.run.factories import make_evaluator
