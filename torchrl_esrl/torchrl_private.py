@@ -212,8 +212,8 @@ def fused_adam_step(optimizer: torch.optim.Adam) -> None:
     every call (docs/performance.md, "adam"). The state tensors are torch's
     own (``state_dict`` and checkpoints unchanged); the lists are rebuilt when the state dict
     object changes (``load_state_dict`` replaces it). Anything but one parameter group of plain
-    fused Adam with every gradient present goes through ``optimizer.step()``, which also makes
-    the first step (it creates the state). ``tests/test_torchrl_private.py`` checks parameters
+    fused Adam with every gradient present and no step hooks goes through ``optimizer.step()``,
+    which also makes the first step (it creates the state). ``tests/test_torchrl_private.py`` checks parameters
     and state against ``optimizer.step()`` bit for bit, across a ``load_state_dict``.
     """
     group = optimizer.param_groups[0] if len(optimizer.param_groups) == 1 else {}
@@ -222,6 +222,7 @@ def fused_adam_step(optimizer: torch.optim.Adam) -> None:
         group.get("fused") and not group["amsgrad"] and not group["maximize"] and not group["capturable"]
         and not group["differentiable"] and not group.get("decoupled_weight_decay") and not isinstance(group["lr"], torch.Tensor)
         and all(p.grad is not None and p in optimizer.state for p in params)
+        and not optimizer_step_hooks(optimizer)
     )
     if not direct:
         optimizer.step()
@@ -239,6 +240,31 @@ def fused_adam_step(optimizer: torch.optim.Adam) -> None:
         params, [p.grad for p in params], exp_avgs, exp_avg_sqs, [], steps,
         lr=group["lr"], beta1=beta1, beta2=beta2, weight_decay=group["weight_decay"], eps=group["eps"],
         amsgrad=False, maximize=False, grad_scale=None, found_inf=None,
+    )
+
+
+def optimizer_step_hooks(optimizer: torch.optim.Optimizer) -> bool:
+    """Whether ``optimizer.step()`` would run step hooks (``register_step_pre_hook`` and
+    ``register_step_post_hook``, the optimizer's own or global): :func:`fused_adam_step` then calls
+    ``step()``. torch keeps them in private dicts with no public getter."""
+    from torch.optim import optimizer as torch_optimizer
+
+    return bool(
+        optimizer._optimizer_step_pre_hooks or optimizer._optimizer_step_post_hooks
+        or torch_optimizer._global_optimizer_pre_hooks or torch_optimizer._global_optimizer_post_hooks
+    )
+
+
+def module_hooks(module: torch.nn.Module) -> bool:
+    """Whether calling ``module`` (not its children) would run forward or backward hooks, its own or
+    torch's global ones. The hand-written TD3 forwards do not call the modules and hand such networks
+    to ``TD3Loss``; torch keeps the hooks in private dicts with no public getter."""
+    from torch.nn.modules import module as torch_module
+
+    return bool(
+        module._forward_hooks or module._forward_pre_hooks or module._backward_hooks or module._backward_pre_hooks
+        or torch_module._global_forward_hooks or torch_module._global_forward_pre_hooks
+        or torch_module._global_backward_hooks or torch_module._global_backward_pre_hooks
     )
 
 
