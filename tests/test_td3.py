@@ -593,3 +593,27 @@ def test_the_fast_loss_hands_what_it_does_not_compute_to_td3loss(change, reason)
         assert type(value.grad_fn).__name__ != "_CriticLossBackward" and type(actor_value.grad_fn).__name__ != "_ActorLossBackward"
         values.append((value.detach(), actor_value.detach()))
     assert torch.equal(values[0][0], values[1][0]) and torch.equal(values[0][1], values[1][1])
+
+
+def test_a_subclass_overriding_what_the_fast_loss_skips_gets_td3loss():
+    """A subclass overriding a TD3Loss member that the hand-written path does not call (here the
+    reduction) is computed by TD3Loss's code, with its override: stock TD3Loss's summed loss."""
+    from torchrl.data import Bounded
+
+    class SummedReduction(ManualGradTD3Loss):
+        def _reduce_loss(self, loss, tensordict=None, weights=None):
+            return loss.sum()
+
+    spec = Bounded(-torch.ones(6), torch.ones(6), shape=(6,))
+    torch.manual_seed(0)
+    actor, critic = make_actor(17, spec, (32, 32)), make_critic(17, 6, (32, 32))
+    batch = _random_transitions(64, 17, 6)
+    values = []
+    for cls, reduction in ((SummedReduction, "mean"), (TD3Loss, "sum"), (ManualGradTD3Loss, "mean")):
+        torch.manual_seed(1)
+        loss = cls(actor_network=actor, qvalue_network=critic, action_spec=spec, num_qvalue_nets=2, loss_function="l2", reduction=reduction)
+        torch.manual_seed(3)
+        values.append(loss.value_loss(batch)[0].item())
+        if cls is SummedReduction:
+            assert loss.refusal() == "td3_loss: reference (SummedReduction overrides _reduce_loss)"
+    assert values[0] == pytest.approx(values[1], rel=1e-6) and values[0] == pytest.approx(64 * values[2], rel=1e-5)

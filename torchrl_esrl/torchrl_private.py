@@ -10,6 +10,7 @@ object of each class and checks that every name is still there.
 """
 from __future__ import annotations
 
+import functools
 import weakref
 
 import numpy as np
@@ -28,7 +29,7 @@ from torchrl_esrl.arrays import numpy_views
 PRIVATE_NAMES: dict[str, tuple[str, ...]] = {
     "torchrl.data.LazyTensorStorage": ("_storage", "_len", "_set_last_cursor", "_last_cursor", "_bump_mutation_revision"),
     "torchrl.data.TensorDictRoundRobinWriter": ("_cursor", "_write_count", "_track_generations", "_mark_update_entities"),
-    "torchrl.objectives.TD3Loss": ("_maybe_get_priority_weight", "_loss_mask_keys", "_cached_detach_qvalue_network_params", "_reduce_loss"),
+    "torchrl.objectives.TD3Loss": ("_maybe_get_priority_weight", "_loss_mask_keys", "_cached_detach_qvalue_network_params", "_reduce_loss", "_make_vmap", "_AcceptedKeys"),
     "torchrl.objectives.SoftUpdate": ("_target_names", "_sources", "_targets"),
     "torchrl.collectors.Collector": ("_carrier", "_frames", "_iter", "_traj_pool"),
     "torchrl.envs.GymEnv": ("_env",),
@@ -241,6 +242,26 @@ def fused_adam_step(optimizer: torch.optim.Adam) -> None:
         lr=group["lr"], beta1=beta1, beta2=beta2, weight_decay=group["weight_decay"], eps=group["eps"],
         amsgrad=False, maximize=False, grad_scale=None, found_inf=None,
     )
+
+
+# TD3Loss / LossModule members that TD3Loss.value_loss and actor_loss call and the hand-written
+# TD3 forwards do not.
+TD3_LOSS_INTERNALS = ("_maybe_get_priority_weight", "_loss_mask_keys", "_reduce_loss", "_make_vmap", "_cached_detach_qvalue_network_params", "value_estimator")
+
+
+def overridden_td3_loss_internals(cls: type, base: type) -> list[str]:
+    """The members of :data:`TD3_LOSS_INTERNALS` that the loss class ``cls`` overrides relative to
+    ``base``: the hand-written TD3 losses skip those calls, so such a subclass gets TD3Loss's code."""
+    return [name for name in TD3_LOSS_INTERNALS if getattr(cls, name) is not getattr(base, name)]
+
+
+@functools.cache
+def td3_loss_default_keys():
+    """``TD3Loss``'s default tensor keys (``TD3Loss._AcceptedKeys()``, the dataclass its ``tensor_keys``
+    is an instance of; no public constructor of the defaults)."""
+    from torchrl.objectives import TD3Loss
+
+    return TD3Loss._AcceptedKeys()
 
 
 def optimizer_step_hooks(optimizer: torch.optim.Optimizer) -> bool:

@@ -20,7 +20,8 @@ from torchrl.objectives.value import TD0Estimator
 
 from torchrl_esrl.modules.networks import squash
 from torchrl_esrl.torchrl_private import (
-    detached_qvalue_params, foreach_lerp_, fused_adam_step, loss_priority_weight, module_hooks, reduce_loss, reweights_or_masks, soft_update_tensors,
+    detached_qvalue_params, foreach_lerp_, fused_adam_step, loss_priority_weight, module_hooks, overridden_td3_loss_internals, reduce_loss,
+    reweights_or_masks, soft_update_tensors, td3_loss_default_keys,
 )
 
 
@@ -83,11 +84,6 @@ def _tanh(x: torch.Tensor) -> torch.Tensor:
 _ACTIVATIONS = {nn.Tanh: _tanh, nn.ReLU: torch.relu}
 # d activation: (gradient w.r.t. the output, the output) -> gradient w.r.t. the input, as autograd computes it
 _ACTIVATION_BACKWARD = {_tanh: torch.ops.aten.tanh_backward, torch.relu: lambda grad, out: torch.ops.aten.threshold_backward(grad, out, 0)}
-
-# TD3Loss / LossModule members that TD3Loss.value_loss and actor_loss call and the hand-written
-# forwards do not: a subclass overriding one of them gets TD3Loss's own code.
-_REFERENCE_MEMBERS = ("_maybe_get_priority_weight", "_loss_mask_keys", "_reduce_loss", "_make_vmap", "_cached_detach_qvalue_network_params", "value_estimator")
-
 
 class ManualGradTD3Loss(TD3Loss):
     """TorchRL's ``TD3Loss`` (Fujimoto et al. 2018) with hand-written forwards and gradients.
@@ -160,7 +156,7 @@ class ManualGradTD3Loss(TD3Loss):
             return f"loss_function={self.loss_function}"
         if self.reduction != "mean":
             return f"reduction={self.reduction}"
-        if self.tensor_keys != _DEFAULT_KEYS:
+        if self.tensor_keys != td3_loss_default_keys():
             return "tensor keys other than TD3Loss's defaults"
         estimator = self.value_estimator
         if type(estimator) is not TD0Estimator:
@@ -201,7 +197,7 @@ class ManualGradTD3Loss(TD3Loss):
             return f"num_qvalue_nets={self.num_qvalue_nets}"
         if not (self.delay_actor and self.delay_qvalue):
             return "no target actor or critic (delay_actor/delay_qvalue False)"
-        overridden = [name for name in _REFERENCE_MEMBERS if getattr(type(self), name) is not getattr(ManualGradTD3Loss, name)]
+        overridden = overridden_td3_loss_internals(type(self), ManualGradTD3Loss)
         if overridden:
             return f"{type(self).__name__} overrides {overridden[0]}"
         actor, critic = self.actor_network, self.qvalue_network
@@ -230,9 +226,6 @@ class ManualGradTD3Loss(TD3Loss):
         if critic_mlp is None:
             return "critic MLP is not Linear layers with tanh or ReLU between them"
         return _ManualGradLayout(self, actor_mlp, critic_mlp)
-
-
-_DEFAULT_KEYS = TD3Loss._AcceptedKeys()
 
 
 class _CriticLoss(torch.autograd.Function):
