@@ -85,6 +85,7 @@ _ACTIVATIONS = {nn.Tanh: _tanh, nn.ReLU: torch.relu}
 # d activation: (gradient w.r.t. the output, the output) -> gradient w.r.t. the input, as autograd computes it
 _ACTIVATION_BACKWARD = {_tanh: torch.ops.aten.tanh_backward, torch.relu: lambda grad, out: torch.ops.aten.threshold_backward(grad, out, 0)}
 
+
 class ManualGradTD3Loss(TD3Loss):
     """TorchRL's ``TD3Loss`` (Fujimoto et al. 2018) with hand-written forwards and gradients.
 
@@ -100,8 +101,10 @@ class ManualGradTD3Loss(TD3Loss):
     the critics and averaged over the batch (tests/test_td3.py: losses, gradients and parameters
     against ``TD3Loss`` to float32 rounding).
 
-    It runs only where it computes exactly what ``TD3Loss`` would; elsewhere (see
-    :meth:`refusal`) both losses are ``TD3Loss``'s own code and autograd.
+    It runs only where it computes the function ``TD3Loss`` would (float32 rounding apart); elsewhere
+    (see :meth:`refusal`) both losses are ``TD3Loss``'s own code and autograd. A subclass's
+    ``value_loss`` or ``actor_loss`` that builds on ``super()``'s loss is trained through these
+    gradients, as through autograd's.
     """
 
     def refusal(self, tensordict: TensorDictBase | None = None) -> str | None:
