@@ -276,17 +276,18 @@ def optimizer_step_hooks(optimizer: torch.optim.Optimizer) -> bool:
     )
 
 
-def module_hooks(module: torch.nn.Module) -> bool:
-    """Whether calling ``module`` (not its children) would run forward or backward hooks, its own or
+def module_hooks(modules) -> bool:
+    """Whether calling any of ``modules`` would run forward or backward hooks, a module's own or
     torch's global ones. The hand-written TD3 forwards do not call the modules and hand such networks
     to ``TD3Loss``; torch keeps the hooks in private dicts with no public getter."""
     from torch.nn.modules import module as torch_module
 
-    return bool(
-        module._forward_hooks or module._forward_pre_hooks or module._backward_hooks or module._backward_pre_hooks
-        or torch_module._global_forward_hooks or torch_module._global_forward_pre_hooks
+    if (
+        torch_module._global_forward_hooks or torch_module._global_forward_pre_hooks
         or torch_module._global_backward_hooks or torch_module._global_backward_pre_hooks
-    )
+    ):
+        return True
+    return any(m._forward_hooks or m._forward_pre_hooks or m._backward_hooks or m._backward_pre_hooks for m in modules)
 
 
 def detached_qvalue_params(loss):

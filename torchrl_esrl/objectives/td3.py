@@ -120,24 +120,27 @@ class ManualGradTD3Loss(TD3Loss):
         prioritised weights, loss masks, ``steps_to_next_obs`` or inputs that need gradients.
         """
         reason = self._refusal(tensordict)
+        if reason is None and tensordict is not None and self._needs_gradient(*(tensordict.get(key) for key in ("observation", "action", ("next", "reward")))):
+            reason = "batch tensors that need gradients"
         return None if reason is None else f"td3_loss: reference ({reason})"
 
     def value_loss(self, tensordict) -> tuple[torch.Tensor, dict]:
         """TD3Loss's critic loss and metadata; its gradient is :class:`_CriticLoss`'s."""
         if self._refusal(tensordict) is not None:
             return super().value_loss(tensordict)
+        observation, action, reward = tensordict.get("observation"), tensordict.get("action"), tensordict.get(("next", "reward"))
+        if self._needs_gradient(observation, action, reward):
+            return super().value_loss(tensordict)
         layout = self._manual_layout()
-        action = tensordict.get(self.tensor_keys.action)
         noise = (torch.randn_like(action) * self.policy_noise).clamp(-self.noise_clip, self.noise_clip)  # first, as TD3Loss
         with torch.no_grad():
             next_observation = tensordict.get(("next", "observation"))
             x = squash(self.actor_network.module[1], _forward(layout.target_actor, next_observation), *layout.target_bounds)
             next_action = (x + noise).clamp(self.min_action, self.max_action)
             next_value = _stacked(layout.target_critics, next_observation, next_action).min(0)[0].unsqueeze(-1)
-            reward = tensordict.get(("next", "reward"))
             terminated = tensordict.get(("next", "terminated"), default=tensordict.get(("next", "done")))
             target_value = (reward + self.value_estimator.gamma * (~terminated).int() * next_value).squeeze(-1)
-        x = torch.cat([tensordict.get("observation"), action], -1)
+        x = torch.cat([observation, action], -1)
         loss, current_qvalue, td_error = _CriticLoss.apply(layout.critic_activations, x, target_value, *layout.critic_parameters)
         return loss, {"td_error": td_error, "next_state_value": next_value.squeeze(-1), "pred_value": current_qvalue, "target_value": target_value}
 
@@ -146,8 +149,11 @@ class ManualGradTD3Loss(TD3Loss):
         the first critic's parameters detached; its gradient is :class:`_ActorLoss`'s."""
         if self._refusal(tensordict) is not None:
             return super().actor_loss(tensordict)
+        observation = tensordict.get("observation")
+        if self._needs_gradient(observation):
+            return super().actor_loss(tensordict)
         layout = self._manual_layout()
-        loss, state_action_value = _ActorLoss.apply(layout.actor_spec, tensordict.get("observation"), *layout.bounds, *layout.actor_parameters, *layout.critic1_parameters)
+        loss, state_action_value = _ActorLoss.apply(layout.actor_spec, layout.actor_constants, observation, *layout.actor_parameters)
         return loss, {"state_action_value_actor": state_action_value}
 
     def _refusal(self, tensordict) -> str | None:
@@ -169,7 +175,7 @@ class ManualGradTD3Loss(TD3Loss):
         keys = estimator.tensor_keys
         if (keys.reward, keys.done, keys.terminated) != ("reward", "done", "terminated"):
             return "value estimator keys other than the defaults"
-        if any(module_hooks(module) for module in layout.modules):
+        if module_hooks(layout.modules):
             return "module hooks"
         if torch.is_autocast_enabled(layout.device_type):
             return "autocast"
@@ -181,9 +187,12 @@ class ManualGradTD3Loss(TD3Loss):
             return f"batch of {tensordict.batch_dims} dims"
         if tensordict.get(keys.steps_to_next_obs, None) is not None:
             return "steps_to_next_obs"
-        if any(tensordict.get(key).requires_grad for key in ("observation", "action", ("next", "reward"))):
-            return "batch tensors that need gradients"
         return None
+
+    @staticmethod
+    def _needs_gradient(*tensors) -> bool:
+        """Whether a batch tensor needs a gradient (TD3Loss would give it one, the hand-written gradients do not)."""
+        return any(tensor.requires_grad for tensor in tensors)
 
     def _manual_layout(self):
         """The networks as :class:`_ManualGradLayout`, built once (TorchRL keeps the parameters in place
@@ -248,8 +257,8 @@ class _CriticLoss(torch.autograd.Function):
         error = current_qvalue - target
         td_error = error.pow(2)
         loss = td_error.sum(0).mean()
-        ctx.save_for_backward(*parameters)
-        ctx.activations, ctx.inputs, ctx.error = activations, inputs, error
+        ctx.save_for_backward(error, *parameters, *inputs)  # autograd frees them after the backward
+        ctx.activations = activations
         ctx.mark_non_differentiable(current_qvalue, td_error)
         ctx.set_materialize_grads(False)
         return loss, current_qvalue, td_error
@@ -257,12 +266,12 @@ class _CriticLoss(torch.autograd.Function):
     @staticmethod
     @once_differentiable
     def backward(ctx, grad_loss, _grad_qvalue, _grad_td_error):
-        parameters = ctx.saved_tensors
+        error, *saved = ctx.saved_tensors
+        count = 2 * len(ctx.activations)
         if grad_loss is None:
-            return (None,) * (3 + len(parameters))
-        error = ctx.error
+            return (None,) * (3 + count)
         grad = (error * (2.0 / error.shape[-1])).unsqueeze(-1) * grad_loss  # dL/dQ, [2, B, 1]
-        grads, _ = _backward(_layers(parameters, ctx.activations), ctx.inputs, grad, ctx.needs_input_grad[3:])
+        grads, _ = _backward(_layers(saved[:count], ctx.activations), saved[count:], grad, ctx.needs_input_grad[3:])
         return None, None, None, *grads
 
 
@@ -271,25 +280,24 @@ class _ActorLoss(torch.autograd.Function):
     ``dL/dQ_1 = -1/B`` back through the first critic (detached: its weights only carry the gradient)
     to the action, through ``TanhModule``'s squashing, then through the actor's layers.
 
-    ``forward(spec, s, low, high, *actor parameters, *critic 1 parameters)`` returns the loss and
-    ``Q_1`` (without gradient); ``spec`` = (actor activations, critic activations, TanhModule's
-    ``clamp`` and ``non_trivial``).
+    ``forward(spec, constants, s, *actor parameters)`` returns the loss and ``Q_1`` (without
+    gradient); ``spec`` = (actor activations, TanhModule's ``clamp`` and ``non_trivial``),
+    ``constants`` = (action low, action high, the first critic's detached layers).
     """
 
     @staticmethod
-    def forward(ctx, spec, observation, low, high, *parameters):
-        actor_activations, critic_activations, clamp, non_trivial = spec
-        actor = _layers(parameters[: 2 * len(actor_activations)], actor_activations)
-        critic1 = _layers(parameters[2 * len(actor_activations) :], critic_activations)
+    def forward(ctx, spec, constants, observation, *parameters):
+        activations, clamp, non_trivial = spec
+        low, high, critic1 = constants
         actor_inputs, critic_inputs = [], []
-        squashed = _forward(actor, observation, actor_inputs).tanh()  # squash(), step by step: its backward needs each step
+        squashed = _forward(_layers(parameters, activations), observation, actor_inputs).tanh()  # squash(), step by step: its backward needs each step
         eps = torch.finfo(squashed.dtype).resolution
         clamped = squashed.clamp(-1 + eps, 1 - eps) if clamp else squashed
         action = low + (high - low) * (clamped + 1) / 2 if non_trivial else clamped
         state_action_value = _forward(critic1, torch.cat([observation, action], -1), critic_inputs).squeeze(-1)
         loss = -state_action_value.mean()
-        ctx.save_for_backward(low, high, *parameters)
-        ctx.spec, ctx.observation_dim, ctx.actor_inputs, ctx.critic_inputs, ctx.squashed = spec, observation.shape[-1], actor_inputs, critic_inputs, squashed
+        ctx.save_for_backward(squashed, *parameters, *actor_inputs, *critic_inputs)  # autograd frees them after the backward
+        ctx.spec, ctx.constants, ctx.observation_dim = spec, constants, observation.shape[-1]
         ctx.mark_non_differentiable(state_action_value)
         ctx.set_materialize_grads(False)
         return loss, state_action_value
@@ -297,23 +305,24 @@ class _ActorLoss(torch.autograd.Function):
     @staticmethod
     @once_differentiable
     def backward(ctx, grad_loss, _grad_value):
-        low, high, *parameters = ctx.saved_tensors
+        activations, clamp, non_trivial = ctx.spec
+        low, high, critic1 = ctx.constants
+        count = 2 * len(activations)
+        squashed, *saved = ctx.saved_tensors
+        parameters, actor_inputs, critic_inputs = saved[:count], saved[count : count + len(activations)], saved[count + len(activations) :]
         if grad_loss is None:
-            return (None,) * (4 + len(parameters))
-        actor_activations, critic_activations, clamp, non_trivial = ctx.spec
-        count = 2 * len(actor_activations)
-        squashed = ctx.squashed
+            return (None,) * (3 + count)
         batch = squashed.shape[0]
         grad = torch.full((batch, 1), -1.0 / batch, dtype=squashed.dtype, device=squashed.device) * grad_loss  # dL/dQ_1
-        _, grad = _backward(_layers(parameters[count:], critic_activations), ctx.critic_inputs, grad, (False,) * (len(parameters) - count), input_grad=True)
+        _, grad = _backward(critic1, critic_inputs, grad, (False,) * (2 * len(critic1)), input_grad=True)
         grad = grad[:, ctx.observation_dim :]  # dL/d action
         if non_trivial:
             grad = grad / 2 * (high - low)
         if clamp:
             eps = torch.finfo(squashed.dtype).resolution
             grad = torch.where((squashed >= -1 + eps) & (squashed <= 1 - eps), grad, 0.0)
-        grads, _ = _backward(_layers(parameters[:count], actor_activations), ctx.actor_inputs, torch.ops.aten.tanh_backward(grad, squashed), ctx.needs_input_grad[4 : 4 + count])
-        return None, None, None, None, *grads, *(None,) * (len(parameters) - count)
+        grads, _ = _backward(_layers(parameters, activations), actor_inputs, torch.ops.aten.tanh_backward(grad, squashed), ctx.needs_input_grad[3:])
+        return None, None, None, *grads
 
 
 def _layers(parameters, activations) -> list:
@@ -366,9 +375,9 @@ def _backward(layers, inputs: list, grad: torch.Tensor, needs, input_grad: bool 
 class _ManualGradLayout:
     """The tensors :class:`ManualGradTD3Loss` computes with, looked up once instead of ~30 TensorDict
     lookups per update: ``(w_1, b_1, ...)`` and activations of the actor and the stacked critics,
-    ``(weight, bias, activation)`` layers of the target networks, the first critic's detached
-    parameters for the actor loss, the action bounds of both actors, the modules whose hooks
-    would change the computation."""
+    ``(weight, bias, activation)`` layers of the target networks and of the first critic (detached,
+    for the actor loss), the action bounds of both actors, the modules whose hooks would change
+    the computation."""
 
     def __init__(self, loss: TD3Loss, actor_mlp, critic_mlp):
         def parameters(params, prefix, mlp):
@@ -384,9 +393,10 @@ class _ManualGradLayout:
         self.critic_activations = tuple(act for _, act in critic_mlp)
         self.critic_parameters = parameters(loss.qvalue_network_params, ("module",), critic_mlp)
         self.target_critics = _layers(parameters(loss.target_qvalue_network_params, ("module",), critic_mlp), self.critic_activations)
-        self.critic1_parameters = tuple(p.detach()[0] for p in self.critic_parameters)
+        critic1 = _layers(tuple(p.detach()[0] for p in self.critic_parameters), self.critic_activations)
+        self.actor_constants = (*self.bounds, critic1)
         tanh_module = loss.actor_network.module[1]
-        self.actor_spec = (tuple(act for _, act in actor_mlp), self.critic_activations, bool(tanh_module.clamp), bool(tanh_module.non_trivial))
+        self.actor_spec = (tuple(act for _, act in actor_mlp), bool(tanh_module.clamp), bool(tanh_module.non_trivial))
         self.modules = (*loss.actor_network.modules(), *loss.qvalue_network.modules())
         self.device_type = self.critic_parameters[0].device.type
 
