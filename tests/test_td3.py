@@ -1,9 +1,13 @@
 """TD3 through TorchRL's TD3Loss, fed by the three buffers (real envs, small budgets)."""
+import copy
+
 import pytest
 import torch
 from torchrl.collectors import Collector
 from torchrl.modules import MLP, ValueOperator
-from torchrl.objectives import DDPGLoss
+from torchrl.objectives import DDPGLoss, SoftUpdate, TD3Loss, ValueEstimators
+
+from benchmarks.common import transitions as _transitions
 
 from torchrl_esrl import MultiBuffer
 from torchrl_esrl.envs import make_env
@@ -168,7 +172,7 @@ def test_q1_actor_loss_gradient_equals_td3loss():
     for cls in (TD3Loss, TD3LossQ1Actor, ManualGradTD3Loss):
         torch.manual_seed(1)
         loss = cls(actor_network=actor, qvalue_network=critic, action_spec=spec, num_qvalue_nets=2, loss_function="l2")
-        assert cls is not ManualGradTD3Loss or loss._manual_layout(), "the hand-written path must be the one under test"
+        assert cls is not ManualGradTD3Loss or loss.refusal() is None, "the hand-written path must be the one under test"
         loss_actor, _ = loss.actor_loss(batch)
         actor.zero_grad()
         loss_actor.backward()
@@ -227,7 +231,7 @@ def _loss_with_moved_targets(cls, actor, critic, spec):
     torch.manual_seed(1)
     loss = cls(actor_network=actor, qvalue_network=critic, action_spec=spec, num_qvalue_nets=2, delay_actor=True, delay_qvalue=True, loss_function="l2")
     loss.make_value_estimator(gamma=0.97)
-    assert cls is TD3Loss or loss._manual_layout(), "the hand-written path must be the one under test"
+    assert cls is TD3Loss or loss.refusal() is None, "the hand-written path must be the one under test"
     torch.manual_seed(2)
     with torch.no_grad():
         for target in (loss.target_actor_network_params, loss.target_qvalue_network_params):
@@ -315,25 +319,21 @@ def test_td3_collector_resumes_mid_episode(fast):
         assert torch.equal(got.get(key), expected.get(key)), key
 
 
-def test_numpy_tanh_of_the_manual_grad_loss_matches_torch_tanh_and_its_gradient():
-    """The hand-written losses' hidden tanh (numpy's kernel, torch's tanh_backward) against torch.tanh:
-    values within float32 rounding, the same gradient formula, in place only without autograd."""
+def test_numpy_tanh_of_the_manual_grad_loss_matches_torch_tanh():
+    """The hand-written forwards' hidden tanh: numpy's kernel in place without autograd (within one
+    float32 rounding step of torch.tanh), torch.tanh itself where a gradient is recorded."""
     from torchrl_esrl.objectives.td3 import _tanh
 
     x = (3 * torch.randn(256, 256, generator=torch.Generator().manual_seed(0))).requires_grad_()
-    grad_out = torch.randn(256, 256, generator=torch.Generator().manual_seed(1))
     y_torch = torch.tanh(x)
-    (g_torch,) = torch.autograd.grad(y_torch, x, grad_out)
     y = _tanh(x)
     assert y.grad_fn is not None and y.data_ptr() != x.data_ptr()
-    (g,) = torch.autograd.grad(y, x, grad_out)
-    torch.testing.assert_close(y, y_torch, rtol=0, atol=2e-7)
-    torch.testing.assert_close(g, torch.ops.aten.tanh_backward(grad_out, y.detach()), rtol=0, atol=0)
-    torch.testing.assert_close(g, g_torch, rtol=0, atol=1e-6)
+    assert torch.equal(y, y_torch)
     with torch.no_grad():
         z = x.detach().clone()
         assert _tanh(z) is z
         torch.testing.assert_close(z, y_torch.detach(), rtol=0, atol=2e-7)
+        assert not torch.equal(z, x)
 
 
 def test_manual_grad_loss_follows_a_loaded_state_dict():
@@ -359,7 +359,7 @@ def test_manual_grad_loss_follows_a_loaded_state_dict():
 
 @pytest.mark.parametrize("activation", ["relu", "tanh"])
 def test_value_loss_backward_equals_td3loss_backward(activation):
-    """ManualGradTD3Loss.value_loss_backward (loss and critic gradients by the chain rule, no autograd)
+    """ManualGradTD3Loss.value_loss + backward (the chain rule inside a torch.autograd.Function)
     against stock TD3Loss.value_loss + backward: same loss, same gradients, with targets
     differing from the online networks, non-unit bounds and terminated transitions."""
     from torchrl.objectives import TD3Loss
@@ -371,12 +371,9 @@ def test_value_loss_backward_equals_td3loss_backward(activation):
     for cls in (TD3Loss, ManualGradTD3Loss):
         loss = _loss_with_moved_targets(cls, actor, critic, spec)
         torch.manual_seed(3)
-        if cls is TD3Loss:
-            value, _ = loss.value_loss(batch)
-            value.backward()
-        else:
-            value = loss.value_loss_backward(batch)
-            assert value is not None and value.grad_fn is None
+        value, _ = loss.value_loss(batch)
+        assert cls is TD3Loss or type(value.grad_fn).__name__ == "_CriticLossBackward"
+        value.backward()
         results.append((value.detach(), [p.grad.clone() for p in loss.qvalue_network_params.values(True, True)]))
     (stock_value, stock_grads), (manual_value, manual_grads) = results
     torch.testing.assert_close(manual_value, stock_value)
@@ -388,8 +385,9 @@ def test_value_loss_backward_equals_td3loss_backward(activation):
 
 @pytest.mark.parametrize("bounds", ["unit", "other"])
 def test_actor_loss_backward_equals_td3loss_backward(bounds):
-    """ManualGradTD3Loss.actor_loss_backward (by the chain rule, no autograd) against stock
-    TD3Loss.actor_loss + backward: same loss, same actor gradients, critics left without any."""
+    """ManualGradTD3Loss.actor_loss + backward (the chain rule inside a torch.autograd.Function)
+    against stock TD3Loss.actor_loss + backward: same loss, same actor gradients, critics left
+    without any."""
     from torchrl.data import Bounded
     from torchrl.objectives import TD3Loss
 
@@ -405,13 +403,10 @@ def test_actor_loss_backward_equals_td3loss_backward(bounds):
         torch.manual_seed(1)  # the loss draws its critics' parameters
         loss = cls(actor_network=actor, qvalue_network=critic, action_spec=spec, num_qvalue_nets=2, loss_function="l2")
         actor.zero_grad(set_to_none=True)
-        if cls is TD3Loss:
-            value, _ = loss.actor_loss(batch)
-            value.backward()
-        else:
-            assert loss._manual_layout(), "the hand-written path must be the one under test"
-            value = loss.actor_loss_backward(batch)
-            assert all(p.grad is None for p in loss.qvalue_network_params.values(True, True))
+        value, _ = loss.actor_loss(batch)
+        assert cls is TD3Loss or type(value.grad_fn).__name__ == "_ActorLossBackward"
+        value.backward()
+        assert all(p.grad is None for p in loss.qvalue_network_params.values(True, True))
         results.append((value.detach(), [p.grad.clone() for p in actor.parameters()]))
     (stock_value, stock_grads), (manual_value, manual_grads) = results
     torch.testing.assert_close(manual_value, stock_value)
@@ -419,3 +414,206 @@ def test_actor_loss_backward_equals_td3loss_backward(bounds):
     for a, b in zip(stock_grads, manual_grads):
         assert a.abs().sum() > 0
         torch.testing.assert_close(b, a, rtol=1e-5, atol=1e-7)
+
+
+# ------------------------------------------------- edits a researcher makes, fast pieces against the reference
+REFERENCE = {"loss_class": TD3Loss, "target_update_class": SoftUpdate, "optimizer_impl": "default"}
+
+
+class _L2TD3(TD3):
+    """TD3 with an L2 penalty on every trained parameter, added to each loss."""
+
+    def backward(self, loss, optimizer):
+        super().backward(loss + 1e-1 * sum(p.pow(2).sum() for p in optimizer.param_groups[0]["params"]), optimizer)
+
+
+class _ClippedTD3(TD3):
+    """TD3 that clips each network's gradient norm after backward."""
+
+    def backward(self, loss, optimizer):
+        super().backward(loss, optimizer)
+        torch.nn.utils.clip_grad_norm_(optimizer.param_groups[0]["params"], 0.05)
+
+
+def _scale_gradients(td3):
+    """Gradient hooks on the actor's and the critics' first weights: rows alternately zeroed and halved
+    (Adam undoes a constant scale: the zeroed rows are what shows)."""
+    for weight in (td3.actor[0].module[0].weight, td3.loss.qvalue_network_params.get(("module", "0", "weight"))):
+        scale = torch.where(torch.arange(weight.shape[-2]) % 2 == 0, 0.0, 0.5).unsqueeze(-1)
+        weight.register_hook(lambda grad, scale=scale: grad * scale)
+
+
+def _clip_in_step_pre_hook(td3):
+    """clip_grad_norm_ in the optimizers' step pre-hooks (fused Adam's direct kernel call must run them)."""
+    def clip(optimizer, args, kwargs):
+        torch.nn.utils.clip_grad_norm_(optimizer.param_groups[0]["params"], 0.05)
+
+    for optimizer in (td3.actor_optimizer, td3.critic_optimizer):
+        optimizer.register_step_pre_hook(clip)
+
+
+def _freeze_actor_layer(td3):
+    td3.actor[0].module[0].requires_grad_(False)
+
+
+def _freeze_critic_layer(td3):
+    for key in (("module", "0", "weight"), ("module", "0", "bias")):
+        td3.loss.qvalue_network_params.get(key).requires_grad_(False)
+
+
+def _td3_runs(pieces, td3_class=TD3, edit=None, updates=5, **kwargs):
+    """(TD3, its update outputs) after ``updates`` updates (policy delay 2) from fixed initial weights,
+    on fixed batches (some terminated) and noise."""
+    from torchrl.data import Bounded
+
+    spec = Bounded(-torch.ones(6), torch.ones(6), shape=(6,))
+    torch.manual_seed(0)
+    actor, critic = make_actor(17, spec, (64, 64)), make_critic(17, 6, (64, 64))
+    generator = torch.Generator().manual_seed(0)
+    batches = [_transitions(128, 17, 6, generator) for _ in range(updates)]
+    for batch in batches:
+        batch["next", "terminated"][::9] = True
+    torch.manual_seed(1)  # TD3Loss draws the other critics' initial weights
+    td3 = td3_class(copy.deepcopy(actor), copy.deepcopy(critic), spec, policy_delay=2, **pieces, **kwargs)
+    if edit is not None:
+        edit(td3)
+    outs = []
+    for step, batch in enumerate(batches):
+        torch.manual_seed(100 + step)
+        outs.append(td3.update(batch))
+    return td3, outs
+
+
+def _state(td3) -> dict:
+    return {
+        "parameters": [p.detach().clone() for p in td3.loss.parameters()],
+        "targets": [td3.loss.target_actor_network_params.to_dict(), td3.loss.target_qvalue_network_params.to_dict()],
+    }
+
+
+EDITS = {
+    "l2_term": {"td3_class": _L2TD3},
+    "clip_grad_norm": {"td3_class": _ClippedTD3},
+    "gradient_hook": {"edit": _scale_gradients},
+    "clip_in_step_pre_hook": {"edit": _clip_in_step_pre_hook},
+    "frozen_actor_layer": {"edit": _freeze_actor_layer},
+    "frozen_critic_layer": {"edit": _freeze_critic_layer},
+    "num_qvalue_nets_1": {"num_qvalue_nets": 1},
+    "num_qvalue_nets_3": {"num_qvalue_nets": 3},
+}
+
+
+@pytest.mark.parametrize("name", list(EDITS))
+def test_an_edit_gives_the_fast_pieces_the_references_result(name):
+    """Each edit (a loss term or gradient clipping in TD3.backward, gradient or optimizer hooks, frozen
+    layers, 1 or 3 critics) changes the run, and the fast pieces (ManualGradTD3Loss, ForeachSoftUpdate,
+    fused Adam) still give the reference's (TD3Loss, SoftUpdate, Adam) losses and parameters."""
+    edit = EDITS[name]
+    reference, reference_outs = _td3_runs(REFERENCE, **edit)
+    fast, fast_outs = _td3_runs(FAST, **edit)
+    unedited, unedited_outs = _td3_runs(FAST)
+    expected = f"td3_loss: reference (num_qvalue_nets={edit['num_qvalue_nets']})" if "num_qvalue_nets" in edit else None
+    assert fast.loss.refusal() == expected
+    assert [out.keys() for out in fast_outs] == [out.keys() for out in reference_outs]
+    torch.testing.assert_close(fast_outs, reference_outs, rtol=1e-5, atol=1e-6)
+    torch.testing.assert_close(_state(fast), _state(reference), rtol=1e-5, atol=1e-6)
+    # the edit reached the run: far beyond the tolerance above from the unedited one
+    if "num_qvalue_nets" in edit:
+        assert fast.loss.qvalue_network_params.get(("module", "0", "weight")).shape[0] == edit["num_qvalue_nets"]
+        assert fast_outs[-1]["critic_loss"] != pytest.approx(unedited_outs[-1]["critic_loss"], rel=1e-3)
+    else:
+        moved = max((a - b).abs().max().item() for a, b in zip(_state(fast)["parameters"], _state(unedited)["parameters"]))
+        assert moved > 1e-4, moved
+    if name.startswith("frozen"):
+        initial = _td3_runs(FAST, updates=0, **edit)[0]
+        frozen = [(p, q) for p, q in zip(fast.loss.parameters(), initial.loss.parameters()) if not p.requires_grad]
+        assert len(frozen) == 2 and all(torch.equal(p, q) and p.grad is None for p, q in frozen)
+        moving = [(p, q) for p, q in zip(unedited.loss.parameters(), initial.loss.parameters()) if q.requires_grad is False]
+        assert len(moving) == 2 and not any(torch.equal(p, q) for p, q in moving)  # they move when not frozen
+
+
+def test_loss_gradient_is_scaled_by_the_incoming_gradient_and_accumulates_without_rounding():
+    """The hand-written backward multiplies by the loss's incoming gradient (2 * loss: twice the
+    gradients, as TD3Loss), and autograd writes it into an empty .grad as it came out of the backward."""
+    from torchrl.data import Bounded
+
+    spec = Bounded(-torch.ones(6), torch.ones(6), shape=(6,))
+    batch = _random_transitions(64, 17, 6)
+    torch.manual_seed(0)
+    actor, critic = make_actor(17, spec, (32, 32)), make_critic(17, 6, (32, 32))
+    grads = {}
+    for cls in (TD3Loss, ManualGradTD3Loss):
+        torch.manual_seed(1)
+        loss = cls(actor_network=actor, qvalue_network=critic, action_spec=spec, num_qvalue_nets=2, loss_function="l2")
+        for which, parameters in (("value", list(loss.qvalue_network_params.values(True, True))), ("actor", list(actor.parameters()))):
+            for scale in (1.0, 2.0):
+                torch.manual_seed(3)
+                value = getattr(loss, f"{which}_loss")(batch)[0]
+                for p in parameters:
+                    p.grad = None
+                if cls is ManualGradTD3Loss and scale == 1.0:  # .grad holds what the Function's backward returned
+                    direct = torch.autograd.grad(value, parameters, retain_graph=True)
+                (scale * value).backward()
+                grads[cls, which, scale] = [p.grad.clone() for p in parameters]
+                if cls is ManualGradTD3Loss and scale == 1.0:
+                    assert all(torch.equal(a, b) for a, b in zip(direct, grads[cls, which, scale]))
+    for which in ("value", "actor"):
+        assert all(torch.equal(2 * a, b) for a, b in zip(grads[ManualGradTD3Loss, which, 1.0], grads[ManualGradTD3Loss, which, 2.0]))
+        torch.testing.assert_close(grads[ManualGradTD3Loss, which, 2.0], grads[TD3Loss, which, 2.0], rtol=1e-5, atol=1e-6)
+
+
+@pytest.mark.parametrize(
+    ("change", "reason"),
+    [
+        (lambda loss: setattr(loss, "loss_function", "smooth_l1"), "loss_function=smooth_l1"),
+        (lambda loss: setattr(loss, "reduction", "sum"), "reduction=sum"),
+        (lambda loss: loss.make_value_estimator(ValueEstimators.TD1, gamma=0.99), "value estimator TD1Estimator"),
+        (lambda loss: loss.actor_network.module[0].module[0].register_forward_hook(lambda *args: None), "module hooks"),
+    ],
+)
+def test_the_fast_loss_hands_what_it_does_not_compute_to_td3loss(change, reason):
+    """A setting the hand-written path does not compute: refusal() says which, and value_loss and
+    actor_loss are TD3Loss's own (same values as stock TD3Loss with the same setting)."""
+    from torchrl.data import Bounded
+
+    spec = Bounded(-torch.ones(6), torch.ones(6), shape=(6,))
+    batch = _random_transitions(64, 17, 6)
+    torch.manual_seed(0)
+    actor, critic = make_actor(17, spec, (32, 32)), make_critic(17, 6, (32, 32))
+    values = []
+    for cls in (TD3Loss, ManualGradTD3Loss):
+        torch.manual_seed(1)
+        loss = cls(actor_network=copy.deepcopy(actor), qvalue_network=copy.deepcopy(critic), action_spec=spec, num_qvalue_nets=2, loss_function="l2")
+        loss.make_value_estimator(gamma=0.99)
+        assert cls is TD3Loss or loss.refusal() is None
+        change(loss)
+        assert cls is TD3Loss or loss.refusal(batch) == f"td3_loss: reference ({reason})"
+        torch.manual_seed(3)
+        value, actor_value = loss.value_loss(batch)[0], loss.actor_loss(batch)[0]
+        assert type(value.grad_fn).__name__ != "_CriticLossBackward" and type(actor_value.grad_fn).__name__ != "_ActorLossBackward"
+        values.append((value.detach(), actor_value.detach()))
+    assert torch.equal(values[0][0], values[1][0]) and torch.equal(values[0][1], values[1][1])
+
+
+def test_a_subclass_overriding_what_the_fast_loss_skips_gets_td3loss():
+    """A subclass overriding a TD3Loss member that the hand-written path does not call (here the
+    reduction) is computed by TD3Loss's code, with its override: stock TD3Loss's summed loss."""
+    from torchrl.data import Bounded
+
+    class SummedReduction(ManualGradTD3Loss):
+        def _reduce_loss(self, loss, tensordict=None, weights=None):
+            return loss.sum()
+
+    spec = Bounded(-torch.ones(6), torch.ones(6), shape=(6,))
+    torch.manual_seed(0)
+    actor, critic = make_actor(17, spec, (32, 32)), make_critic(17, 6, (32, 32))
+    batch = _random_transitions(64, 17, 6)
+    values = []
+    for cls, reduction in ((SummedReduction, "mean"), (TD3Loss, "sum"), (ManualGradTD3Loss, "mean")):
+        torch.manual_seed(1)
+        loss = cls(actor_network=actor, qvalue_network=critic, action_spec=spec, num_qvalue_nets=2, loss_function="l2", reduction=reduction)
+        torch.manual_seed(3)
+        values.append(loss.value_loss(batch)[0].item())
+        if cls is SummedReduction:
+            assert loss.refusal() == "td3_loss: reference (SummedReduction overrides _reduce_loss)"
+    assert values[0] == pytest.approx(values[1], rel=1e-6) and values[0] == pytest.approx(64 * values[2], rel=1e-5)

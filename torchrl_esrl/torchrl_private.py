@@ -10,6 +10,7 @@ object of each class and checks that every name is still there.
 """
 from __future__ import annotations
 
+import functools
 import weakref
 
 import numpy as np
@@ -28,7 +29,7 @@ from torchrl_esrl.arrays import numpy_views
 PRIVATE_NAMES: dict[str, tuple[str, ...]] = {
     "torchrl.data.LazyTensorStorage": ("_storage", "_len", "_set_last_cursor", "_last_cursor", "_bump_mutation_revision"),
     "torchrl.data.TensorDictRoundRobinWriter": ("_cursor", "_write_count", "_track_generations", "_mark_update_entities"),
-    "torchrl.objectives.TD3Loss": ("_maybe_get_priority_weight", "_loss_mask_keys", "_cached_detach_qvalue_network_params", "_reduce_loss"),
+    "torchrl.objectives.TD3Loss": ("_maybe_get_priority_weight", "_loss_mask_keys", "_cached_detach_qvalue_network_params", "_reduce_loss", "_make_vmap", "_AcceptedKeys"),
     "torchrl.objectives.SoftUpdate": ("_target_names", "_sources", "_targets"),
     "torchrl.collectors.Collector": ("_carrier", "_frames", "_iter", "_traj_pool"),
     "torchrl.envs.GymEnv": ("_env",),
@@ -212,8 +213,8 @@ def fused_adam_step(optimizer: torch.optim.Adam) -> None:
     every call (docs/performance.md, "adam"). The state tensors are torch's
     own (``state_dict`` and checkpoints unchanged); the lists are rebuilt when the state dict
     object changes (``load_state_dict`` replaces it). Anything but one parameter group of plain
-    fused Adam with every gradient present goes through ``optimizer.step()``, which also makes
-    the first step (it creates the state). ``tests/test_torchrl_private.py`` checks parameters
+    fused Adam with every gradient present and no step hooks goes through ``optimizer.step()``,
+    which also makes the first step (it creates the state). ``tests/test_torchrl_private.py`` checks parameters
     and state against ``optimizer.step()`` bit for bit, across a ``load_state_dict``.
     """
     group = optimizer.param_groups[0] if len(optimizer.param_groups) == 1 else {}
@@ -222,6 +223,7 @@ def fused_adam_step(optimizer: torch.optim.Adam) -> None:
         group.get("fused") and not group["amsgrad"] and not group["maximize"] and not group["capturable"]
         and not group["differentiable"] and not group.get("decoupled_weight_decay") and not isinstance(group["lr"], torch.Tensor)
         and all(p.grad is not None and p in optimizer.state for p in params)
+        and not optimizer_step_hooks(optimizer)
     )
     if not direct:
         optimizer.step()
@@ -240,6 +242,52 @@ def fused_adam_step(optimizer: torch.optim.Adam) -> None:
         lr=group["lr"], beta1=beta1, beta2=beta2, weight_decay=group["weight_decay"], eps=group["eps"],
         amsgrad=False, maximize=False, grad_scale=None, found_inf=None,
     )
+
+
+# TD3Loss / LossModule members that TD3Loss.value_loss and actor_loss call and the hand-written
+# TD3 forwards do not.
+TD3_LOSS_INTERNALS = ("_maybe_get_priority_weight", "_loss_mask_keys", "_reduce_loss", "_make_vmap", "_cached_detach_qvalue_network_params", "value_estimator")
+
+
+def overridden_td3_loss_internals(cls: type, base: type) -> list[str]:
+    """The members of :data:`TD3_LOSS_INTERNALS` that the loss class ``cls`` overrides relative to
+    ``base``: the hand-written TD3 losses skip those calls, so such a subclass gets TD3Loss's code."""
+    return [name for name in TD3_LOSS_INTERNALS if getattr(cls, name) is not getattr(base, name)]
+
+
+@functools.cache
+def td3_loss_default_keys():
+    """``TD3Loss``'s default tensor keys (``TD3Loss._AcceptedKeys()``, the dataclass its ``tensor_keys``
+    is an instance of; no public constructor of the defaults)."""
+    from torchrl.objectives import TD3Loss
+
+    return TD3Loss._AcceptedKeys()
+
+
+def optimizer_step_hooks(optimizer: torch.optim.Optimizer) -> bool:
+    """Whether ``optimizer.step()`` would run step hooks (``register_step_pre_hook`` and
+    ``register_step_post_hook``, the optimizer's own or global): :func:`fused_adam_step` then calls
+    ``step()``. torch keeps them in private dicts with no public getter."""
+    from torch.optim import optimizer as torch_optimizer
+
+    return bool(
+        optimizer._optimizer_step_pre_hooks or optimizer._optimizer_step_post_hooks
+        or torch_optimizer._global_optimizer_pre_hooks or torch_optimizer._global_optimizer_post_hooks
+    )
+
+
+def module_hooks(modules) -> bool:
+    """Whether calling any of ``modules`` would run forward or backward hooks, a module's own or
+    torch's global ones. The hand-written TD3 forwards do not call the modules and hand such networks
+    to ``TD3Loss``; torch keeps the hooks in private dicts with no public getter."""
+    from torch.nn.modules import module as torch_module
+
+    if (
+        torch_module._global_forward_hooks or torch_module._global_forward_pre_hooks
+        or torch_module._global_backward_hooks or torch_module._global_backward_pre_hooks
+    ):
+        return True
+    return any(m._forward_hooks or m._forward_pre_hooks or m._backward_hooks or m._backward_pre_hooks for m in modules)
 
 
 def detached_qvalue_params(loss):

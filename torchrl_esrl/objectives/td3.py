@@ -12,12 +12,17 @@ import numpy as np
 import torch
 from torch import nn
 from tensordict import TensorDictBase
-from tensordict.nn import TensorDictSequential
-from torchrl.modules import AdditiveGaussianModule
+from tensordict.nn import TensorDictModule, TensorDictSequential
+from torch.autograd.function import once_differentiable
+from torchrl.modules import MLP, AdditiveGaussianModule, TanhModule, ValueOperator
 from torchrl.objectives import SoftUpdate, TD3Loss
+from torchrl.objectives.value import TD0Estimator
 
 from torchrl_esrl.modules.networks import squash
-from torchrl_esrl.torchrl_private import detached_qvalue_params, foreach_lerp_, fused_adam_step, loss_priority_weight, reduce_loss, reweights_or_masks, soft_update_tensors
+from torchrl_esrl.torchrl_private import (
+    detached_qvalue_params, foreach_lerp_, fused_adam_step, loss_priority_weight, module_hooks, overridden_td3_loss_internals, reduce_loss,
+    reweights_or_masks, soft_update_tensors, td3_loss_default_keys,
+)
 
 
 class TD3LossQ1Actor(TD3Loss):
@@ -44,50 +49,33 @@ class TD3LossQ1Actor(TD3Loss):
 
 
 def _plain_mlp(module: nn.Module):
-    """``[(linear index, activation), ...]`` of an ``nn.Sequential`` of Linear layers and tanh/ReLU
-    activations (TorchRL's ``MLP`` as built by :mod:`torchrl_esrl.modules.networks`), or None."""
-    layers, children = [], list(module.named_children()) if isinstance(module, nn.Sequential) else None
-    if not children:
+    """``[(linear index, activation), ...]`` of an ``nn.Sequential`` (or TorchRL ``MLP``) of biased
+    ``nn.Linear`` layers with ``nn.Tanh``/``nn.ReLU`` between them and none after the last, or None."""
+    if type(module) not in (nn.Sequential, MLP):
         return None
-    for name, child in children:
-        if isinstance(child, nn.Linear):
+    layers = []
+    for name, child in module.named_children():
+        if type(child) is nn.Linear and child.bias is not None:
             layers.append([name, None])
         elif type(child) in _ACTIVATIONS and layers and layers[-1][1] is None:
             layers[-1][1] = _ACTIVATIONS[type(child)]
         else:
             return None
-    if any(act is None for _, act in layers[:-1]) or layers[-1][1] is not None:
+    if not layers or any(act is None for _, act in layers[:-1]) or layers[-1][1] is not None:
         return None
     return [(name, act) for name, act in layers]
 
 
-class _NumpyTanh(torch.autograd.Function):
-    """``tanh`` computed by numpy, with torch's own ``tanh_backward`` (``grad * (1 - y^2)``).
-
-    Written by hand because torch 2.13's CPU ``tanh`` measured slower than ``numpy.tanh`` on
-    the update's 256x256 float32 activations (docs/performance.md). The two agree to one float32 rounding
-    step; tests/test_td3.py compares the loss and its gradients with stock ``TD3Loss``.
-    """
-
-    @staticmethod
-    def forward(ctx, x):
-        y = torch.from_numpy(np.tanh(x.detach().numpy()))
-        ctx.save_for_backward(y)
-        return y
-
-    @staticmethod
-    def backward(ctx, grad):
-        (y,) = ctx.saved_tensors
-        return torch.ops.aten.tanh_backward(grad, y)
-
-
 def _tanh(x: torch.Tensor) -> torch.Tensor:
-    """Hidden ``tanh`` of the hand-written losses: numpy's kernel, in place when no gradient is needed
-    (``x`` is a fresh layer output there)."""
-    if x.device.type != "cpu" or x.dtype not in (torch.float32, torch.float64):
+    """Hidden ``tanh`` of the hand-written forwards: numpy's kernel, in place on ``x`` (a fresh layer
+    output) where no gradient is recorded; ``torch.tanh`` otherwise.
+
+    numpy's kernel because torch 2.13's CPU ``tanh`` measured slower than ``numpy.tanh`` on the
+    update's 256x256 float32 activations (docs/performance.md); the two agree to one float32
+    rounding step (tests/test_td3.py).
+    """
+    if x.device.type != "cpu" or x.dtype not in (torch.float32, torch.float64) or (torch.is_grad_enabled() and x.requires_grad):
         return torch.tanh(x)
-    if torch.is_grad_enabled() and x.requires_grad:
-        return _NumpyTanh.apply(x)
     array = x.numpy()
     np.tanh(array, out=array)
     return x
@@ -98,166 +86,254 @@ _ACTIVATIONS = {nn.Tanh: _tanh, nn.ReLU: torch.relu}
 _ACTIVATION_BACKWARD = {_tanh: torch.ops.aten.tanh_backward, torch.relu: lambda grad, out: torch.ops.aten.threshold_backward(grad, out, 0)}
 
 
-class ManualGradTD3Loss(TD3LossQ1Actor):
-    """TorchRL's ``TD3Loss`` (through :class:`TD3LossQ1Actor`) whose losses and gradients are
-    written by hand: ``value_loss_backward`` and ``actor_loss_backward`` compute each loss and set
-    its gradients by the chain rule, without autograd, and :class:`TD3` calls them.
+class ManualGradTD3Loss(TD3Loss):
+    """TorchRL's ``TD3Loss`` (Fujimoto et al. 2018) with hand-written forwards and gradients.
 
-    ``TD3Loss.value_loss`` evaluates the two critics (and their targets) with ``vmap`` over a
-    TensorDict-expanded batch and the target actor through a parameter swap into the module;
-    each step pays TensorDict and functorch bookkeeping around ~10 small matmuls. Here the
-    critics' stacked parameters (TorchRL keeps them as ``[2, ...]`` tensors) are used directly:
-    one ``torch.baddbmm`` over a ``[2, in, out]`` weight stack per layer for both critics, and
-    the target actor as a chain of ``torch.addmm``. The arithmetic is TD3Loss's: same noise draw
-    (same RNG order), clamp to the action bounds, ``min`` of the target critics, TD(0) target
-    ``r + gamma * (1 - terminated) * Q'``, squared error summed over the critics and averaged
-    over the batch (tests/test_td3.py compares losses, gradients and targets after several
-    updates with stock ``TD3Loss``). ``actor_loss`` is :class:`TD3LossQ1Actor`'s, written the
-    same way. Networks of another shape or activation, other value estimators, losses or
-    reductions, prioritised weights or loss masks, and a subclass's own ``value_loss`` or
-    ``actor_loss``, go to the parent's code and autograd.
+    ``value_loss`` and ``actor_loss`` return loss tensors made by :class:`_CriticLoss` and
+    :class:`_ActorLoss`, ``torch.autograd.Function`` s whose forward computes TD3Loss's loss
+    (the twin critics' stacked ``[2, ...]`` parameters as one ``torch.baddbmm`` per layer, the
+    actors as chains of ``torch.addmm``, the actor loss on the first critic only, as Fujimoto's
+    TD3 and :class:`TD3LossQ1Actor`) and whose backward returns the parameter gradients by the
+    chain rule. Autograd puts them into ``.grad``, so ``loss.backward()``, extra loss terms, hooks,
+    gradient clipping and frozen parameters behave as with ``TD3Loss``. The arithmetic is
+    TD3Loss's: the same noise draw (same RNG order), clamp to the action bounds, ``min`` of the
+    target critics, TD(0) target ``r + gamma * (1 - terminated) * Q'``, squared error summed over
+    the critics and averaged over the batch (tests/test_td3.py: losses, gradients and parameters
+    against ``TD3Loss`` to float32 rounding).
+
+    It runs only where it computes the function ``TD3Loss`` would (float32 rounding apart); elsewhere
+    (see :meth:`refusal`) both losses are ``TD3Loss``'s own code and autograd. A subclass's
+    ``value_loss`` or ``actor_loss`` that builds on ``super()``'s loss is trained through these
+    gradients, as through autograd's.
     """
 
-    def _manual_layout(self):
-        """The networks as lists of ``(weight, bias, activation)`` tensors, built once (TorchRL
-        keeps the parameters in place for the life of the loss, as :class:`ForeachSoftUpdate`
-        relies on too), or False when the networks are not the plain MLPs this path handles."""
-        layout = self.__dict__.get("_manual")
-        if layout is None:
-            layout = False
-            actor, critic = self.actor_network, self.qvalue_network
-            if (
-                self.loss_function == "l2"
-                and self.reduction == "mean"
-                and type(self.value_estimator).__name__ == "TD0Estimator"
-                and isinstance(actor, TensorDictSequential)
-                and len(actor.module) == 2
-                and type(actor.module[1]).__name__ == "TanhModule"
-                and list(actor.in_keys) == ["observation"]
-                and self.tensor_keys.action == "action"
-            ):
-                actor_mlp = _plain_mlp(actor.module[0].module)
-                critic_mlp = _plain_mlp(getattr(critic, "module", None))
-                if actor_mlp and critic_mlp and list(critic.in_keys) == ["observation", "action"] and len(critic.out_keys) == 1:
-                    layout = _ManualGradLayout(self, actor_mlp, critic_mlp)
-            self.__dict__["_manual"] = layout
-        return layout
+    def refusal(self, tensordict: TensorDictBase | None = None) -> str | None:
+        """None where :meth:`value_loss` and :meth:`actor_loss` run the hand-written gradients,
+        else why they hand over to ``TD3Loss``, as one line (``"td3_loss: reference
+        (num_qvalue_nets=3)"``); with a batch, also that batch's reasons (prioritised weights...).
 
-    def _manual_layout_for(self, tensordict):
-        """:meth:`_manual_layout`, or False for a batch with prioritised weights or loss masks
-        (TorchRL's code and autograd handle those)."""
-        return False if reweights_or_masks(self, tensordict) else self._manual_layout()
-
-    def _inherits(self, name: str) -> bool:
-        """Whether ``name`` (``value_loss``, ``actor_loss``) is this class's own: a subclass that
-        overrides it gets its own loss, through autograd, not the hand-written gradient of this one."""
-        return getattr(type(self), name) is getattr(ManualGradTD3Loss, name)
+        The hand-written path needs: 2 critics, ``l2`` loss, ``mean`` reduction, a plain
+        ``TD0Estimator``, TorchRL's default tensor keys, target networks for actor and critics, an
+        actor of biased Linear layers with tanh or ReLU between them followed by ``TanhModule``, a
+        critic ``MLP`` of the same kind over ``cat(observation, action)``, no module hooks, no
+        autocast, no subclass override of the TD3Loss members it replaces; and a flat batch without
+        prioritised weights, loss masks, ``steps_to_next_obs`` or inputs that need gradients.
+        """
+        reason = self._refusal(tensordict)
+        if reason is None and tensordict is not None and self._needs_gradient(*(tensordict.get(key) for key in ("observation", "action", ("next", "reward")))):
+            reason = "batch tensors that need gradients"
+        return None if reason is None else f"td3_loss: reference ({reason})"
 
     def value_loss(self, tensordict) -> tuple[torch.Tensor, dict]:
-        """TD3Loss's critic loss and its metadata tensors (TD3.update uses :meth:`value_loss_backward`)."""
-        layout = self._manual_layout_for(tensordict)
-        if not layout:
+        """TD3Loss's critic loss and metadata; its gradient is :class:`_CriticLoss`'s."""
+        if self._refusal(tensordict) is not None:
             return super().value_loss(tensordict)
-        action = tensordict.get(self.tensor_keys.action)
-        target_value, next_value = self._target_value(layout, tensordict, action)
-        current_qvalue = self._twin_critics(layout.critics, tensordict.get("observation"), action)
-        loss_qval = (current_qvalue - target_value).pow(2).sum(0).mean()
-        return loss_qval, {
-            "td_error": (current_qvalue.detach() - target_value).pow(2),
-            "next_state_value": next_value.squeeze(-1),
-            "pred_value": current_qvalue.detach(),
-            "target_value": target_value,
-        }
-
-    def value_loss_backward(self, tensordict) -> torch.Tensor | None:
-        """``value_loss`` and its backward in one pass, without autograd: sets the critics'
-        ``.grad`` (as ``zero_grad(set_to_none=True)`` then ``backward()`` would) and returns the
-        loss. None where the hand-written path does not apply (the caller then uses ``value_loss``).
-
-        Written by hand because autograd's graph bookkeeping around these small matmuls is a
-        share of a TD3 update of the paper's networks (docs/performance.md, "td3_loss"); the gradient is
-        the chain rule through the same ``bmm`` layers, layer by layer:
-        ``dW = g^T x``, ``db = sum_batch g``, ``g <- (g W) * act'``, from
-        ``g = dL/dQ = 2 (Q - y) / B``. tests/test_td3.py compares loss and gradients with
-        stock ``TD3Loss.value_loss`` + ``backward``.
-        """
-        layout = self._manual_layout_for(tensordict) if self._inherits("value_loss") else False
-        if not layout:
-            return None
-        action = tensordict.get(self.tensor_keys.action)
-        target_value, _ = self._target_value(layout, tensordict, action)
-        with torch.no_grad():
-            inputs = []
-            error = self._twin_critics(layout.critics, tensordict.get("observation"), action, inputs) - target_value  # [2, B]
-            loss = error.pow(2).sum(0).mean()
-            _backward(layout.critics, inputs, (error * (2.0 / error.shape[-1])).unsqueeze(-1))  # from dL/dQ, [2, B, 1]
-        return loss
-
-    def _target_value(self, layout, tensordict, action) -> tuple[torch.Tensor, torch.Tensor]:
-        """TD3's target ``r + gamma (1 - terminated) min_k Q'_k(s', clamp(pi'(s') + noise))`` and the
-        ``min`` term, with TD3Loss's noise draw (first, same RNG order)."""
-        noise = (torch.randn_like(action) * self.policy_noise).clamp(-self.noise_clip, self.noise_clip)
+        observation, action, reward = tensordict.get("observation"), tensordict.get("action"), tensordict.get(("next", "reward"))
+        if self._needs_gradient(observation, action, reward):
+            return super().value_loss(tensordict)
+        layout = self._manual_layout()
+        noise = (torch.randn_like(action) * self.policy_noise).clamp(-self.noise_clip, self.noise_clip)  # first, as TD3Loss
         with torch.no_grad():
             next_observation = tensordict.get(("next", "observation"))
-            x = self._actor(layout.target_actor, layout.target_bounds, next_observation)
+            x = squash(self.actor_network.module[1], _forward(layout.target_actor, next_observation), *layout.target_bounds)
             next_action = (x + noise).clamp(self.min_action, self.max_action)
-            next_q = self._twin_critics(layout.target_critics, next_observation, next_action)
-            next_value = next_q.min(0)[0].unsqueeze(-1)
-            reward = tensordict.get(("next", "reward"))
+            next_value = _stacked(layout.target_critics, next_observation, next_action).min(0)[0].unsqueeze(-1)
             terminated = tensordict.get(("next", "terminated"), default=tensordict.get(("next", "done")))
             target_value = (reward + self.value_estimator.gamma * (~terminated).int() * next_value).squeeze(-1)
-        return target_value, next_value
+        x = torch.cat([observation, action], -1)
+        loss, current_qvalue, td_error = _CriticLoss.apply(layout.critic_activations, x, target_value, *layout.critic_parameters)
+        return loss, {"td_error": td_error, "next_state_value": next_value.squeeze(-1), "pred_value": current_qvalue, "target_value": target_value}
 
     def actor_loss(self, tensordict) -> tuple[torch.Tensor, dict]:
-        """``-Q_1(s, pi(s)).mean()`` as :class:`TD3LossQ1Actor`, with the actor and the first
-        critic's (detached) parameters used directly instead of swapped into the modules."""
-        layout = self._manual_layout_for(tensordict)
-        if not layout:
+        """``-Q_1(s, pi(s)).mean()``: TD3Loss's actor loss (it keeps ``Q[0]`` of both critics), with
+        the first critic's parameters detached; its gradient is :class:`_ActorLoss`'s."""
+        if self._refusal(tensordict) is not None:
             return super().actor_loss(tensordict)
         observation = tensordict.get("observation")
-        state_action_value = _forward(layout.critic1, torch.cat([observation, self._actor(layout.actor, layout.bounds, observation)], -1)).squeeze(-1)
-        return -state_action_value.mean(), {"state_action_value_actor": state_action_value.detach()}
+        if self._needs_gradient(observation):
+            return super().actor_loss(tensordict)
+        layout = self._manual_layout()
+        loss, state_action_value = _ActorLoss.apply(layout.actor_spec, layout.actor_constants, observation, *layout.actor_parameters)
+        return loss, {"state_action_value_actor": state_action_value}
 
-    def actor_loss_backward(self, tensordict) -> torch.Tensor | None:
-        """``actor_loss`` and its backward in one pass, without autograd, as
-        :meth:`value_loss_backward`: sets the actor's ``.grad`` and returns the loss (None where
-        the hand-written path does not apply). From ``dL/dQ_1 = -1/B`` the gradient runs back through the
-        first critic (its weights only carry it: they are not trained by this loss) to the action,
-        through ``TanhModule``'s squashing, then through the actor's layers.
-        tests/test_td3.py compares loss and gradients with stock ``TD3Loss.actor_loss``.
-        """
-        layout = self._manual_layout_for(tensordict) if self._inherits("actor_loss") else False
-        if not layout:
+    def _refusal(self, tensordict) -> str | None:
+        """:meth:`refusal`'s reason without the prefix (cheap: the networks are described once)."""
+        layout = self._manual_layout()
+        if isinstance(layout, str):
+            return layout
+        if self.loss_function != "l2":
+            return f"loss_function={self.loss_function}"
+        if self.reduction != "mean":
+            return f"reduction={self.reduction}"
+        if self.tensor_keys != td3_loss_default_keys():
+            return "tensor keys other than TD3Loss's defaults"
+        estimator = self.value_estimator
+        if type(estimator) is not TD0Estimator:
+            return f"value estimator {type(estimator).__name__}"
+        if estimator.average_rewards:
+            return "average_rewards"
+        keys = estimator.tensor_keys
+        if (keys.reward, keys.done, keys.terminated) != ("reward", "done", "terminated"):
+            return "value estimator keys other than the defaults"
+        if module_hooks(layout.modules):
+            return "module hooks"
+        if torch.is_autocast_enabled(layout.device_type):
+            return "autocast"
+        if tensordict is None:
             return None
-        tanh_module = self.actor_network.module[1]
-        with torch.no_grad():
-            observation = tensordict.get("observation")
-            actor_inputs, critic_inputs = [], []
-            squashed = _forward(layout.actor, observation, actor_inputs).tanh()  # squash(), step by step: its backward needs each step
-            low, high = layout.bounds
-            eps = torch.finfo(squashed.dtype).resolution
-            clamped = squashed.clamp(-1 + eps, 1 - eps) if tanh_module.clamp else squashed
-            action = low + (high - low) * (clamped + 1) / 2 if tanh_module.non_trivial else clamped
-            q1 = _forward(layout.critic1, torch.cat([observation, action], -1), critic_inputs)
-            loss = -q1.squeeze(-1).mean()
-            grad = _backward(layout.critic1, critic_inputs, torch.full_like(q1, -1.0 / q1.shape[0]), parameters=False)  # from dL/dQ_1
-            grad = grad[:, observation.shape[-1]:]  # dL/d action
-            if tanh_module.non_trivial:
-                grad = grad / 2 * (high - low)
-            if tanh_module.clamp:
-                grad = torch.where((squashed >= -1 + eps) & (squashed <= 1 - eps), grad, 0.0)
-            _backward(layout.actor, actor_inputs, torch.ops.aten.tanh_backward(grad, squashed))
-        return loss
-
-    def _actor(self, layers, bounds, observation) -> torch.Tensor:
-        """The actor (MLP + ``TanhModule``) with the online or target ``layers``, as its modules compute it."""
-        return squash(self.actor_network.module[1], _forward(layers, observation), *bounds)
+        if reweights_or_masks(self, tensordict):
+            return "prioritised weights or loss mask"
+        if tensordict.batch_dims != 1:
+            return f"batch of {tensordict.batch_dims} dims"
+        if tensordict.get(keys.steps_to_next_obs, None) is not None:
+            return "steps_to_next_obs"
+        return None
 
     @staticmethod
-    def _twin_critics(layers, observation, action, inputs: list | None = None) -> torch.Tensor:
-        """``[2, B]`` values of the stacked critics: one ``baddbmm`` per layer."""
-        x = torch.cat([observation, action], -1)
-        return _forward(layers, x.expand(2, *x.shape), inputs).squeeze(-1)
+    def _needs_gradient(*tensors) -> bool:
+        """Whether a batch tensor needs a gradient (TD3Loss would give it one, the hand-written gradients do not)."""
+        return any(tensor.requires_grad for tensor in tensors)
+
+    def _manual_layout(self):
+        """The networks as :class:`_ManualGradLayout`, built once (TorchRL keeps the parameters in place
+        for the life of the loss, as :class:`ForeachSoftUpdate` relies on too), or the reason the
+        hand-written path does not apply to them."""
+        layout = self.__dict__.get("_manual")
+        if layout is None:
+            layout = self.__dict__["_manual"] = self._describe()
+        return layout
+
+    def _describe(self):
+        """:meth:`_manual_layout`'s value."""
+        if self.num_qvalue_nets != 2:
+            return f"num_qvalue_nets={self.num_qvalue_nets}"
+        if not (self.delay_actor and self.delay_qvalue):
+            return "no target actor or critic (delay_actor/delay_qvalue False)"
+        overridden = overridden_td3_loss_internals(type(self), ManualGradTD3Loss)
+        if overridden:
+            return f"{type(self).__name__} overrides {overridden[0]}"
+        actor, critic = self.actor_network, self.qvalue_network
+        steps = actor.module if type(actor) is TensorDictSequential else ()
+        if not (
+            len(steps) == 2
+            and type(steps[0]) is TensorDictModule
+            and type(steps[1]) is TanhModule
+            and list(steps[0].in_keys) == ["observation"]
+            and list(steps[0].out_keys) == list(steps[1].in_keys)
+            and len(steps[1].in_keys) == 1
+            and list(steps[1].out_keys) == ["action"]
+        ):
+            return "actor is not TensorDictModule(MLP, observation) + TanhModule -> action"
+        actor_mlp = _plain_mlp(steps[0].module)
+        if actor_mlp is None:
+            return "actor MLP is not Linear layers with tanh or ReLU between them"
+        if not (
+            type(critic) in (TensorDictModule, ValueOperator)
+            and type(critic.module) is MLP  # its forward concatenates the in_keys
+            and list(critic.in_keys) == ["observation", "action"]
+            and list(critic.out_keys) == ["state_action_value"]
+        ):
+            return "critic is not an MLP over (observation, action) -> state_action_value"
+        critic_mlp = _plain_mlp(critic.module)
+        if critic_mlp is None:
+            return "critic MLP is not Linear layers with tanh or ReLU between them"
+        return _ManualGradLayout(self, actor_mlp, critic_mlp)
+
+
+class _CriticLoss(torch.autograd.Function):
+    """TD3's critic loss ``sum_k mean_B (Q_k(s, a) - y)^2`` of the stacked critics (one ``baddbmm`` per
+    layer for both) and its gradient by the chain rule from ``dL/dQ = 2 (Q - y) / B``.
+
+    ``forward(activations, cat(s, a), y, w_1, b_1, w_2, ...)`` returns the loss, ``Q`` and the
+    squared errors (the last two without gradient); ``backward`` the gradients of the parameters
+    that need one (None for the others), scaled by the loss's incoming gradient.
+    """
+
+    @staticmethod
+    def forward(ctx, activations, x, target, *parameters):
+        inputs = []
+        layers = _layers(parameters, activations)
+        current_qvalue = _forward(layers, x.expand(parameters[0].shape[0], *x.shape), inputs).squeeze(-1)
+        error = current_qvalue - target
+        td_error = error.pow(2)
+        loss = td_error.sum(0).mean()
+        ctx.save_for_backward(error, *parameters, *inputs)  # autograd frees them after the backward
+        ctx.activations = activations
+        ctx.mark_non_differentiable(current_qvalue, td_error)
+        ctx.set_materialize_grads(False)
+        return loss, current_qvalue, td_error
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, grad_loss, _grad_qvalue, _grad_td_error):
+        error, *saved = ctx.saved_tensors
+        count = 2 * len(ctx.activations)
+        if grad_loss is None:
+            return (None,) * (3 + count)
+        grad = (error * (2.0 / error.shape[-1])).unsqueeze(-1) * grad_loss  # dL/dQ, [2, B, 1]
+        grads, _ = _backward(_layers(saved[:count], ctx.activations), saved[count:], grad, ctx.needs_input_grad[3:])
+        return None, None, None, *grads
+
+
+class _ActorLoss(torch.autograd.Function):
+    """TD3's actor loss ``-mean_B Q_1(s, pi(s))`` and its gradient w.r.t. the actor's parameters: from
+    ``dL/dQ_1 = -1/B`` back through the first critic (detached: its weights only carry the gradient)
+    to the action, through ``TanhModule``'s squashing, then through the actor's layers.
+
+    ``forward(spec, constants, s, *actor parameters)`` returns the loss and ``Q_1`` (without
+    gradient); ``spec`` = (actor activations, TanhModule's ``clamp`` and ``non_trivial``),
+    ``constants`` = (action low, action high, the first critic's detached layers).
+    """
+
+    @staticmethod
+    def forward(ctx, spec, constants, observation, *parameters):
+        activations, clamp, non_trivial = spec
+        low, high, critic1 = constants
+        actor_inputs, critic_inputs = [], []
+        squashed = _forward(_layers(parameters, activations), observation, actor_inputs).tanh()  # squash(), step by step: its backward needs each step
+        eps = torch.finfo(squashed.dtype).resolution
+        clamped = squashed.clamp(-1 + eps, 1 - eps) if clamp else squashed
+        action = low + (high - low) * (clamped + 1) / 2 if non_trivial else clamped
+        state_action_value = _forward(critic1, torch.cat([observation, action], -1), critic_inputs).squeeze(-1)
+        loss = -state_action_value.mean()
+        ctx.save_for_backward(squashed, *parameters, *actor_inputs, *critic_inputs)  # autograd frees them after the backward
+        ctx.spec, ctx.constants, ctx.observation_dim = spec, constants, observation.shape[-1]
+        ctx.mark_non_differentiable(state_action_value)
+        ctx.set_materialize_grads(False)
+        return loss, state_action_value
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, grad_loss, _grad_value):
+        activations, clamp, non_trivial = ctx.spec
+        low, high, critic1 = ctx.constants
+        count = 2 * len(activations)
+        squashed, *saved = ctx.saved_tensors
+        parameters, actor_inputs, critic_inputs = saved[:count], saved[count : count + len(activations)], saved[count + len(activations) :]
+        if grad_loss is None:
+            return (None,) * (3 + count)
+        batch = squashed.shape[0]
+        grad = torch.full((batch, 1), -1.0 / batch, dtype=squashed.dtype, device=squashed.device) * grad_loss  # dL/dQ_1
+        _, grad = _backward(critic1, critic_inputs, grad, (False,) * (2 * len(critic1)), input_grad=True)
+        grad = grad[:, ctx.observation_dim :]  # dL/d action
+        if non_trivial:
+            grad = grad / 2 * (high - low)
+        if clamp:
+            eps = torch.finfo(squashed.dtype).resolution
+            grad = torch.where((squashed >= -1 + eps) & (squashed <= 1 - eps), grad, 0.0)
+        grads, _ = _backward(_layers(parameters, activations), actor_inputs, torch.ops.aten.tanh_backward(grad, squashed), ctx.needs_input_grad[3:])
+        return None, None, None, *grads
+
+
+def _layers(parameters, activations) -> list:
+    """``(weight, bias, activation)`` per layer from ``(w_1, b_1, w_2, b_2, ...)``."""
+    return [(parameters[2 * index], parameters[2 * index + 1], act) for index, act in enumerate(activations)]
+
+
+def _stacked(layers, observation, action) -> torch.Tensor:
+    """``[2, B]`` values of the stacked critics: one ``baddbmm`` per layer."""
+    x = torch.cat([observation, action], -1)
+    return _forward(layers, x.expand(layers[0][0].shape[0], *x.shape)).squeeze(-1)
 
 
 def _forward(layers, x: torch.Tensor, inputs: list | None = None) -> torch.Tensor:
@@ -276,45 +352,53 @@ def _forward(layers, x: torch.Tensor, inputs: list | None = None) -> torch.Tenso
     return x
 
 
-def _backward(layers, inputs: list, grad: torch.Tensor, parameters: bool = True) -> torch.Tensor:
-    """The chain rule back through :func:`_forward`'s ``layers`` from ``grad`` = dL/d(output):
-    per layer ``dW = g^T x`` and ``db = sum over the batch of g`` (assigned to ``.grad`` when
-    ``parameters``), then ``g <- (g W) * act'(x)``. Returns dL/d(first input) when not
-    ``parameters`` (the actor loss needs dL/d action from the first critic, whose weights it does
-    not train); with ``parameters`` the first layer's input gradient is not computed."""
-    for index in range(len(layers) - 1, -1, -1):
-        weight, bias, _ = layers[index]
-        if parameters:
-            weight.grad = torch.matmul(grad.transpose(-2, -1), inputs[index])
-            bias.grad = grad.sum(-2)
-            if not index:
-                break
-        grad = torch.matmul(grad, weight)
-        if index:
-            grad = _ACTIVATION_BACKWARD[layers[index - 1][2]](grad, inputs[index])
-    return grad
+def _backward(layers, inputs: list, grad: torch.Tensor, needs, input_grad: bool = False) -> tuple[list, torch.Tensor | None]:
+    """The chain rule back through :func:`_forward`'s ``layers`` from ``grad`` = dL/d(output): per layer
+    ``dW = g^T x`` and ``db = sum over the batch of g`` where ``needs`` (one flag per weight and bias)
+    asks for them, then ``g <- (g W) * act'(x)`` while a layer below (or, with ``input_grad``, the
+    input) needs it. Returns (the parameters' gradients, None where not asked; dL/d input or None)."""
+    grads = [None] * len(needs)
+    lowest = 0 if input_grad else next((index // 2 for index, need in enumerate(needs) if need), len(layers))
+    for index in range(len(layers) - 1, lowest - 1, -1):
+        weight = layers[index][0]
+        if needs[2 * index]:
+            grads[2 * index] = torch.matmul(grad.transpose(-2, -1), inputs[index])
+        if needs[2 * index + 1]:
+            grads[2 * index + 1] = grad.sum(-2)
+        if index > lowest or input_grad:
+            grad = torch.matmul(grad, weight)
+            if index:
+                grad = _ACTIVATION_BACKWARD[layers[index - 1][2]](grad, inputs[index])
+    return grads, grad if input_grad else None
 
 
 class _ManualGradLayout:
     """The tensors :class:`ManualGradTD3Loss` computes with, looked up once instead of ~30 TensorDict
-    lookups per update: ``(weight, bias, activation)`` per layer of the online and target actor
-    and twin critics, the first critic's detached weights for the actor loss, and
-    the action bounds of both actors."""
+    lookups per update: ``(w_1, b_1, ...)`` and activations of the actor and the stacked critics,
+    ``(weight, bias, activation)`` layers of the target networks and of the first critic (detached,
+    for the actor loss), the action bounds of both actors, the modules whose hooks would change
+    the computation."""
 
     def __init__(self, loss: TD3Loss, actor_mlp, critic_mlp):
-        def layers(params, prefix, mlp):
-            return [(params.get((*prefix, name, "weight")), params.get((*prefix, name, "bias")), act) for name, act in mlp]
+        def parameters(params, prefix, mlp):
+            return tuple(params.get((*prefix, name, kind)) for name, _ in mlp for kind in ("weight", "bias"))
 
         actor_prefix = ("module", "0", "module")
-        self.actor = layers(loss.actor_network_params, actor_prefix, actor_mlp)
-        self.target_actor = layers(loss.target_actor_network_params, actor_prefix, actor_mlp)
+        self.actor_parameters = parameters(loss.actor_network_params, actor_prefix, actor_mlp)
+        self.target_actor = _layers(parameters(loss.target_actor_network_params, actor_prefix, actor_mlp), [act for _, act in actor_mlp])
         self.bounds, self.target_bounds = (
             (params.get(("module", "1", "action_low")), params.get(("module", "1", "action_high")))
             for params in (loss.actor_network_params, loss.target_actor_network_params)
         )
-        self.critics = layers(loss.qvalue_network_params, ("module",), critic_mlp)
-        self.target_critics = layers(loss.target_qvalue_network_params, ("module",), critic_mlp)
-        self.critic1 = [(weight.detach()[0], bias.detach()[0], act) for weight, bias, act in self.critics]
+        self.critic_activations = tuple(act for _, act in critic_mlp)
+        self.critic_parameters = parameters(loss.qvalue_network_params, ("module",), critic_mlp)
+        self.target_critics = _layers(parameters(loss.target_qvalue_network_params, ("module",), critic_mlp), self.critic_activations)
+        critic1 = _layers(tuple(p.detach()[0] for p in self.critic_parameters), self.critic_activations)
+        self.actor_constants = (*self.bounds, critic1)
+        tanh_module = loss.actor_network.module[1]
+        self.actor_spec = (tuple(act for _, act in actor_mlp), bool(tanh_module.clamp), bool(tanh_module.non_trivial))
+        self.modules = (*loss.actor_network.modules(), *loss.qvalue_network.modules())
+        self.device_type = self.critic_parameters[0].device.type
 
 
 class ForeachSoftUpdate(SoftUpdate):
@@ -336,7 +420,10 @@ class ForeachSoftUpdate(SoftUpdate):
 
 
 class TD3:
-    """TD3 learner over an actor and a critic template (two critics are made from it).
+    """TD3 (Fujimoto et al. 2018) over an actor and a critic template (two critics are made from it),
+    updated as TorchRL's ``sota-implementations/td3``: per step ``zero_grad``, ``value_loss``,
+    ``backward``, ``step``; every ``policy_delay`` steps the same for ``actor_loss``, then the soft
+    target update.
 
     Args:
         actor: deterministic actor (``observation -> action``).
@@ -349,16 +436,20 @@ class TD3:
         policy_delay: critic updates per actor/target update.
         exploration_noise: std of the Gaussian noise added to actions when acting (paper: 0.1).
         loss_function: critic regression loss (``"l2"`` as in Fujimoto's TD3).
-        loss_class: the ``TD3Loss`` class (or a subclass) to build. Stock ``TD3Loss`` (the
-            reference, trained by autograd) or :class:`ManualGradTD3Loss`, whose
-            ``value_loss_backward``/``actor_loss_backward`` give the same losses and gradients
-            without autograd; :meth:`update` uses those methods where the loss has them.
+        num_qvalue_nets: critics made from ``critic`` (TD3: 2).
+        loss_class: the ``TD3Loss`` class (or a subclass) to build: stock ``TD3Loss`` (the
+            reference) or :class:`ManualGradTD3Loss` (hand-written forwards and gradients where it
+            computes exactly what ``TD3Loss`` would, ``TD3Loss``'s code elsewhere).
         target_update_class: ``SoftUpdate`` (the reference) or :class:`ForeachSoftUpdate`.
         optimizer_impl: ``"default"`` (torch's ``Adam`` as constructed by default, the
             reference), ``"foreach"``, or ``"fused"`` (fused Adam, stepped by one direct kernel
             call: :func:`~torchrl_esrl.torchrl_private.fused_adam_step`).
         num_threads: torch threads while :func:`~torchrl_esrl.algorithm.td3_phase.td3_phase` runs
             (None: leave the process's count; docs/performance.md).
+
+    To change the gradients (an extra loss term, clipping), override :meth:`backward` in a
+    subclass; hooks on the parameters or optimizers, and frozen parameters
+    (``requires_grad_(False)``), work as in any PyTorch training loop, with every ``loss_class``.
 
     The reference is TorchRL's stock TD3 (``TD3Loss``, ``SoftUpdate``, ``Adam``);
     :func:`torchrl_esrl.run.factories.make_td3` picks the fast pieces.
@@ -377,6 +468,7 @@ class TD3:
         policy_delay: int = 2,
         exploration_noise: float = 0.1,
         loss_function: str = "l2",
+        num_qvalue_nets: int = 2,
         loss_class: type[TD3Loss] = TD3Loss,
         target_update_class: type[SoftUpdate] = SoftUpdate,
         optimizer_impl: str = "default",
@@ -388,7 +480,7 @@ class TD3:
             actor_network=actor,
             qvalue_network=critic,
             action_spec=action_spec,
-            num_qvalue_nets=2,
+            num_qvalue_nets=num_qvalue_nets,
             policy_noise=policy_noise,
             noise_clip=noise_clip,
             loss_function=loss_function,
@@ -397,7 +489,7 @@ class TD3:
         )
         self.loss.make_value_estimator(gamma=gamma)
         self.target_update = target_update_class(self.loss, tau=tau)
-        # The loss shares storage with `actor`; the two critics live in the loss's stacked params.
+        # The loss shares storage with `actor`; the critics live in the loss's stacked params.
         if optimizer_impl not in ("fused", "foreach", "default"):
             raise ValueError(f"optimizer_impl must be fused, foreach or default, got {optimizer_impl!r}")
         self.optimizer_impl = optimizer_impl
@@ -415,11 +507,8 @@ class TD3:
     def update(self, batch: TensorDictBase) -> dict[str, float]:
         """One TD3 step: critic update; every ``policy_delay`` steps actor and target updates."""
         self.critic_optimizer.zero_grad(set_to_none=True)
-        manual = getattr(self.loss, "value_loss_backward", None)  # loss and gradients in one pass, where the loss has it
-        critic_loss = manual(batch) if manual is not None else None
-        if critic_loss is None:
-            critic_loss, _ = self.loss.value_loss(batch)
-            critic_loss.backward()
+        critic_loss, _ = self.loss.value_loss(batch)
+        self.backward(critic_loss, self.critic_optimizer)
         out = {"critic_loss": critic_loss.item()}
         if not math.isfinite(out["critic_loss"]):
             raise FloatingPointError(f"TD3 critic loss is {out['critic_loss']} at update {self.updates}")
@@ -427,17 +516,20 @@ class TD3:
         self.updates += 1
         if self.updates % self.policy_delay == 0:
             self.actor_optimizer.zero_grad(set_to_none=True)
-            manual = getattr(self.loss, "actor_loss_backward", None)
-            actor_loss = manual(batch) if manual is not None else None
-            if actor_loss is None:
-                actor_loss, _ = self.loss.actor_loss(batch)
-                actor_loss.backward()
+            actor_loss, _ = self.loss.actor_loss(batch)
+            self.backward(actor_loss, self.actor_optimizer)
             out["actor_loss"] = actor_loss.item()
             if not math.isfinite(out["actor_loss"]):
                 raise FloatingPointError(f"TD3 actor loss is {out['actor_loss']} at update {self.updates}")
             self._step(self.actor_optimizer)
             self.target_update.step()
         return out
+
+    def backward(self, loss: torch.Tensor, optimizer: torch.optim.Optimizer) -> None:
+        """``loss.backward()`` before ``optimizer`` (critic or actor Adam) steps: the place for a
+        subclass to add a loss term (``super().backward(loss + extra, optimizer)``) or to edit the
+        gradients after it (``torch.nn.utils.clip_grad_norm_(optimizer.param_groups[0]["params"], c)``)."""
+        loss.backward()
 
     def _step(self, optimizer: torch.optim.Adam) -> None:
         """``optimizer.step()``; fused Adam as one direct kernel call (same arithmetic)."""
