@@ -184,7 +184,7 @@ def test_weighted_or_masked_batches_are_handed_to_torchrl(extra):
         batch = _batch()
         batch.set(("collector", "mask"), torch.rand(64, generator=generator) > 0.3)
     fast, _ = _td3_pair(ManualGradTD3Loss)
-    assert fast.loss.refusal() is None and fast.loss.refusal(batch) == "td3_loss: reference (prioritised weights or loss mask)"
+    assert fast.loss.refusal() is None and fast.loss.refusal(batch) == "prioritised weights or loss mask"
     reference = _td3_pair(TD3Loss)[0]  # stock TD3Loss and autograd, the other pieces as in fast
     plain_batch = _batch()
     torch.manual_seed(5)

@@ -109,8 +109,9 @@ class ManualGradTD3Loss(TD3Loss):
 
     def refusal(self, tensordict: TensorDictBase | None = None) -> str | None:
         """None where :meth:`value_loss` and :meth:`actor_loss` run the hand-written gradients,
-        else why they hand over to ``TD3Loss``, as one line (``"td3_loss: reference
-        (num_qvalue_nets=3)"``); with a batch, also that batch's reasons (prioritised weights...).
+        else why they hand over to ``TD3Loss``, in a few words (``"num_qvalue_nets=3"``; the run
+        prints ``td3_loss: reference (num_qvalue_nets=3)``); with a batch, also that batch's reasons
+        (prioritised weights...).
 
         The hand-written path needs: 2 critics, ``l2`` loss, ``mean`` reduction, a plain
         ``TD0Estimator``, TorchRL's default tensor keys, target networks for actor and critics, an
@@ -122,7 +123,7 @@ class ManualGradTD3Loss(TD3Loss):
         reason = self._refusal(tensordict)
         if reason is None and tensordict is not None and self._needs_gradient(*(tensordict.get(key) for key in ("observation", "action", ("next", "reward")))):
             reason = "batch tensors that need gradients"
-        return None if reason is None else f"td3_loss: reference ({reason})"
+        return reason
 
     def value_loss(self, tensordict) -> tuple[torch.Tensor, dict]:
         """TD3Loss's critic loss and metadata; its gradient is :class:`_CriticLoss`'s."""

@@ -37,7 +37,7 @@ from torchrl_esrl.threads import TD3_THREADS, job_cores
 IMPLEMENTATIONS = ("fast", "reference")
 # Each fast piece, and the reference it replaces (docs/performance.md has the table):
 FAST_PIECES = {
-    "td3_loss": "ManualGradTD3Loss (gradients without autograd) <- TorchRL TD3Loss + autograd",
+    "td3_loss": "ManualGradTD3Loss (hand-written gradients beneath loss.backward()) <- TorchRL TD3Loss + autograd",
     "soft_update": "ForeachSoftUpdate <- TorchRL SoftUpdate",
     "adam": "fused Adam, one kernel call <- torch.optim.Adam",
     "td3_collector": "GymTD3Collector <- TorchRL Collector over GymEnv",
@@ -257,8 +257,6 @@ def implementations(cfg: DictConfig, **components) -> dict[str, str]:
         loss = td3.loss
         refusal = getattr(loss, "refusal", None)
         why = refusal() if callable(refusal) else None
-        if isinstance(loss, ManualGradTD3Loss) and why is None and not loss._manual_layout():
-            why = "networks or loss settings it does not compute"
         piece("td3_loss", isinstance(loss, ManualGradTD3Loss) and why is None, why)
         piece("soft_update", isinstance(td3.target_update, ForeachSoftUpdate))
         piece("adam", td3.optimizer_impl == "fused")
