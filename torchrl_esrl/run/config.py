@@ -34,6 +34,11 @@ RENAMED = {
 }
 
 
+# Keys added to the schema since runs were first checkpointed: key -> the value a config saved before
+# it existed had in effect, so that such a run resumes under today's config.
+ADDED = {"env.kwargs": {}, "env.wrappers": [], "env.transforms": []}
+
+
 def _get_or_none(cfg, field: str):
     try:
         return _get(cfg, field)

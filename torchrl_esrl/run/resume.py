@@ -21,7 +21,7 @@ from torchrl_esrl.envs import EnvSpec, env_sizes, resolve_env_id
 from torchrl_esrl.errors import ConfigError
 from torchrl_esrl.run.capacity import check_capacity, default_algorithm, estimate
 from torchrl_esrl.run.checkpoint import CHECKPOINT_DIR, newest_readable, no_readable_checkpoint
-from torchrl_esrl.run.config import check_output_dir, validate_config
+from torchrl_esrl.run.config import ADDED, check_output_dir, validate_config
 
 IGNORED_ON_RESUME = ("resume", "fresh", "logger", "checkpoint", "hydra")  # may change between a run and its resume
 SUMMARY = "summary.json"
@@ -91,14 +91,19 @@ def finished_line(run_dir: Path, summary: dict) -> str:
 
 
 def in_todays_names(saved: dict) -> dict:
-    """A checkpoint's config in today's key names (``run/config.py``'s ``RENAMED``), so that a run
-    started before a rename resumes: ``td3.fast: true|false`` is ``implementation: fast|reference``,
-    the top-level ``mode`` is ``es.schedule``."""
+    """A checkpoint's config in today's key names (``run/config.py``'s ``RENAMED`` and ``ADDED``),
+    so that a run started before a rename or an added key resumes: ``td3.fast: true|false`` is
+    ``implementation: fast|reference``, the top-level ``mode`` is ``es.schedule``, a missing
+    ``env.kwargs`` is ``{}``."""
     fast = saved.get("td3", {}).get("fast")
     if fast is not None:
         saved = {**saved, "implementation": "fast" if fast else "reference", "td3": {**saved["td3"], "fast": None}}
     if saved.get("mode") is not None:
         saved = {**saved, "mode": None, "es": {**saved.get("es", {}), "schedule": saved["mode"]}}
+    for key, value in ADDED.items():  # keys a config saved before they existed had at these values
+        section, _, name = key.partition(".")
+        if section in saved and name not in saved[section]:
+            saved = {**saved, section: {**saved[section], name: value}}
     return saved
 
 
