@@ -47,10 +47,12 @@ def test_demo_shortened_solves_the_task_and_says_so_quietly(tmp_path):
     assert "Initialized LazyTensorStorage" not in console
     assert "frames_per_iteration:" not in console and "population_size:" not in console
     assert (tmp_path / ".hydra" / "config.yaml").exists()  # the config is in the run directory instead
-    # Not a terminal: one plain line per iteration, then at most 8 lines of results, no bar.
+    # Not a terminal: the line naming each piece's implementation, one plain line per iteration,
+    # then at most 8 lines of results, no bar.
     lines = result.stdout.strip().splitlines()
-    assert [line.split(" | ")[0] for line in lines[:10]] == [f"iteration {i}/10" for i in range(1, 11)]
-    assert len(lines) <= 10 + 8 and "\r" not in console
+    assert lines[0].startswith("pieces: td3_loss fast, ") and "reference" not in lines[0], lines[0]
+    assert [line.split(" | ")[0] for line in lines[1:11]] == [f"iteration {i}/10" for i in range(1, 11)]
+    assert len(lines) <= 1 + 10 + 8 and "\r" not in console
 
 
 @pytest.mark.e2e
