@@ -162,7 +162,7 @@ def test_q1_actor_loss_gradient_equals_td3loss():
     from torchrl.data import Bounded
     from torchrl.objectives import TD3Loss
 
-    from torchrl_esrl.objectives.td3 import ManualGradTD3Loss, TD3LossQ1Actor
+    from torchrl_esrl.objectives.manual_grad import ManualGradTD3Loss, TD3LossQ1Actor
 
     torch.manual_seed(0)
     spec = Bounded(-torch.ones(6), torch.ones(6), shape=(6,))
@@ -322,7 +322,7 @@ def test_td3_collector_resumes_mid_episode(fast):
 def test_numpy_tanh_of_the_manual_grad_loss_matches_torch_tanh():
     """The hand-written forwards' hidden tanh: numpy's kernel in place without autograd (within one
     float32 rounding step of torch.tanh), torch.tanh itself where a gradient is recorded."""
-    from torchrl_esrl.objectives.td3 import _tanh
+    from torchrl_esrl.objectives.manual_grad import _tanh
 
     x = (3 * torch.randn(256, 256, generator=torch.Generator().manual_seed(0))).requires_grad_()
     y_torch = torch.tanh(x)

@@ -279,10 +279,6 @@ class MujocoBatchBackend:
                 gym_env.close()
         return ", ".join(reasons) if reasons else None
 
-    @classmethod
-    def supports(cls, env) -> bool:
-        return cls.refusal(env) is None
-
     def chunks(self, population: int, mirrored: Mirrored | None = None) -> list[_Chunk]:
         """The population cut into chunks of (nearly) equal size: of whole pairs with ``mirrored``,
         of contiguous rows otherwise."""

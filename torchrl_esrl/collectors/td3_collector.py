@@ -69,9 +69,8 @@ def _refusal(env, policy, device) -> str | None:
         return f"frame_skip={env.base_env.frame_skip} (TorchRL's action repeat)"
     project = TransformedEnv(env.base_env, project_transforms())
     project.observation_spec  # noqa: B018 - resolves the transforms' keys, as the run's env has
-    if describe_transform(env.transform) != describe_transform(project.transform):
-        theirs = describe_transform(env.transform)
-        ours = describe_transform(project.transform)
+    theirs, ours = describe_transform(env.transform), describe_transform(project.transform)
+    if theirs != ours:
         names = [t[0].rpartition(".")[2] + ("" if t in ours[1] else "*") for t in theirs[1]] if theirs[0] == "Compose" else [theirs[0]]
         return f"env transforms {', '.join(names)} (* : not the project's DoubleToFloat, RewardSum, StepCounter as built)"
     inner = policy.policy if isinstance(policy, RandomWarmup) else policy

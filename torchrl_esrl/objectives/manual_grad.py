@@ -1,0 +1,402 @@
+"""The hand-written TD3 loss of the fast path (``td3_loss`` in :data:`torchrl_esrl.run.factories.FAST_PIECES`).
+
+:class:`ManualGradTD3Loss` is TorchRL's :class:`~torchrl.objectives.TD3Loss` (Fujimoto et al.
+2018) whose losses are ``torch.autograd.Function``s with the gradients written by the chain rule,
+beneath ``loss.backward()``; :class:`TD3LossQ1Actor` is ``TD3Loss`` with Fujimoto's Q1-only actor
+loss. :class:`torchrl_esrl.objectives.td3.TD3` trains either, or stock ``TD3Loss``.
+"""
+from __future__ import annotations
+
+import numpy as np
+import torch
+from torch import nn
+from tensordict import TensorDictBase
+from tensordict.nn import TensorDictModule, TensorDictSequential
+from torch.autograd.function import once_differentiable
+from torchrl.modules import MLP, TanhModule, ValueOperator
+from torchrl.objectives import TD3Loss
+from torchrl.objectives.value import TD0Estimator
+
+from torchrl_esrl.modules.networks import squash
+from torchrl_esrl.torchrl_private import (
+    detached_qvalue_params, loss_priority_weight, module_hooks, overridden_td3_loss_internals, reduce_loss,
+    reweights_or_masks, td3_loss_default_keys,
+)
+
+
+
+class TD3LossQ1Actor(TD3Loss):
+    """TorchRL's ``TD3Loss`` whose ``actor_loss`` evaluates only the first critic.
+
+    ``TD3Loss.actor_loss`` runs both critics on ``(s, pi(s))`` (expand + vmap) and keeps
+    ``Q[0]``: half of its critic forward and backward is thrown away. Fujimoto's TD3 (and this
+    override) computes ``-Q_1(s, pi(s)).mean()`` only: the same loss value and gradients
+    (tests/test_td3.py checks both against ``TD3Loss``), one critic pass less per actor update.
+    Everything else (critic loss, target smoothing, target parameters) is ``TD3Loss``'s own.
+    """
+
+    def actor_loss(self, tensordict) -> tuple[torch.Tensor, dict]:
+        weights = loss_priority_weight(self, tensordict)
+        td = tensordict.select(*self.actor_network.in_keys, strict=False)
+        with self.actor_network_params.to_module(self.actor_network, preserve_module_state=False):
+            td = self.actor_network(td)
+        td = td.select(*self.qvalue_network.in_keys, strict=False)
+        with detached_qvalue_params(self)[0].to_module(self.qvalue_network, preserve_module_state=False):
+            td = self.qvalue_network(td)
+        state_action_value = td.get(self.tensor_keys.state_action_value).squeeze(-1)
+        loss_actor = reduce_loss(self, -state_action_value, tensordict, weights)
+        return loss_actor, {"state_action_value_actor": state_action_value.detach()}
+
+
+def _plain_mlp(module: nn.Module):
+    """``[(linear index, activation), ...]`` of an ``nn.Sequential`` (or TorchRL ``MLP``) of biased
+    ``nn.Linear`` layers with ``nn.Tanh``/``nn.ReLU`` between them and none after the last, or None."""
+    if type(module) not in (nn.Sequential, MLP):
+        return None
+    layers = []
+    for name, child in module.named_children():
+        if type(child) is nn.Linear and child.bias is not None:
+            layers.append([name, None])
+        elif type(child) in _ACTIVATIONS and layers and layers[-1][1] is None:
+            layers[-1][1] = _ACTIVATIONS[type(child)]
+        else:
+            return None
+    if not layers or any(act is None for _, act in layers[:-1]) or layers[-1][1] is not None:
+        return None
+    return [(name, act) for name, act in layers]
+
+
+def _tanh(x: torch.Tensor) -> torch.Tensor:
+    """Hidden ``tanh`` of the hand-written forwards: numpy's kernel, in place on ``x`` (a fresh layer
+    output) where no gradient is recorded; ``torch.tanh`` otherwise.
+
+    numpy's kernel because torch 2.13's CPU ``tanh`` measured slower than ``numpy.tanh`` on the
+    update's 256x256 float32 activations (docs/performance.md); the two agree to one float32
+    rounding step (tests/test_td3.py).
+    """
+    if x.device.type != "cpu" or x.dtype not in (torch.float32, torch.float64) or (torch.is_grad_enabled() and x.requires_grad):
+        return torch.tanh(x)
+    array = x.numpy()
+    np.tanh(array, out=array)
+    return x
+
+
+_ACTIVATIONS = {nn.Tanh: _tanh, nn.ReLU: torch.relu}
+# d activation: (gradient w.r.t. the output, the output) -> gradient w.r.t. the input, as autograd computes it
+_ACTIVATION_BACKWARD = {_tanh: torch.ops.aten.tanh_backward, torch.relu: lambda grad, out: torch.ops.aten.threshold_backward(grad, out, 0)}
+
+
+class ManualGradTD3Loss(TD3Loss):
+    """TorchRL's ``TD3Loss`` (Fujimoto et al. 2018) with hand-written forwards and gradients.
+
+    ``value_loss`` and ``actor_loss`` return loss tensors made by :class:`_CriticLoss` and
+    :class:`_ActorLoss`, ``torch.autograd.Function`` s whose forward computes TD3Loss's loss
+    (the twin critics' stacked ``[2, ...]`` parameters as one ``torch.baddbmm`` per layer, the
+    actors as chains of ``torch.addmm``, the actor loss on the first critic only, as Fujimoto's
+    TD3 and :class:`TD3LossQ1Actor`) and whose backward returns the parameter gradients by the
+    chain rule. Autograd puts them into ``.grad``, so ``loss.backward()``, extra loss terms, hooks,
+    gradient clipping and frozen parameters behave as with ``TD3Loss``. The arithmetic is
+    TD3Loss's: the same noise draw (same RNG order), clamp to the action bounds, ``min`` of the
+    target critics, TD(0) target ``r + gamma * (1 - terminated) * Q'``, squared error summed over
+    the critics and averaged over the batch (tests/test_td3.py: losses, gradients and parameters
+    against ``TD3Loss`` to float32 rounding).
+
+    It runs only where it computes the function ``TD3Loss`` would (float32 rounding apart); elsewhere
+    (see :meth:`refusal`) both losses are ``TD3Loss``'s own code and autograd. A subclass's
+    ``value_loss`` or ``actor_loss`` that builds on ``super()``'s loss is trained through these
+    gradients, as through autograd's.
+    """
+
+    def refusal(self, tensordict: TensorDictBase | None = None) -> str | None:
+        """None where :meth:`value_loss` and :meth:`actor_loss` run the hand-written gradients,
+        else why they hand over to ``TD3Loss``, in a few words (``"num_qvalue_nets=3"``; the run
+        prints ``td3_loss: reference (num_qvalue_nets=3)``); with a batch, also that batch's reasons
+        (prioritised weights...).
+
+        The hand-written path needs: 2 critics, ``l2`` loss, ``mean`` reduction, a plain
+        ``TD0Estimator``, TorchRL's default tensor keys, target networks for actor and critics, an
+        actor of biased Linear layers with tanh or ReLU between them followed by ``TanhModule``, a
+        critic ``MLP`` of the same kind over ``cat(observation, action)``, no module hooks, no
+        autocast, no subclass override of the TD3Loss members it replaces; and a flat batch without
+        prioritised weights, loss masks, ``steps_to_next_obs`` or inputs that need gradients.
+        """
+        reason = self._refusal(tensordict)
+        if reason is None and tensordict is not None and self._needs_gradient(*(tensordict.get(key) for key in ("observation", "action", ("next", "reward")))):
+            reason = "batch tensors that need gradients"
+        return reason
+
+    def value_loss(self, tensordict) -> tuple[torch.Tensor, dict]:
+        """TD3Loss's critic loss and metadata; its gradient is :class:`_CriticLoss`'s."""
+        if self._refusal(tensordict) is not None:
+            return super().value_loss(tensordict)
+        observation, action, reward = tensordict.get("observation"), tensordict.get("action"), tensordict.get(("next", "reward"))
+        if self._needs_gradient(observation, action, reward):
+            return super().value_loss(tensordict)
+        layout = self._manual_layout()
+        noise = (torch.randn_like(action) * self.policy_noise).clamp(-self.noise_clip, self.noise_clip)  # first, as TD3Loss
+        with torch.no_grad():
+            next_observation = tensordict.get(("next", "observation"))
+            x = squash(self.actor_network.module[1], _forward(layout.target_actor, next_observation), *layout.target_bounds)
+            next_action = (x + noise).clamp(self.min_action, self.max_action)
+            next_value = _stacked(layout.target_critics, next_observation, next_action).min(0)[0].unsqueeze(-1)
+            terminated = tensordict.get(("next", "terminated"), default=tensordict.get(("next", "done")))
+            target_value = (reward + self.value_estimator.gamma * (~terminated).int() * next_value).squeeze(-1)
+        x = torch.cat([observation, action], -1)
+        loss, current_qvalue, td_error = _CriticLoss.apply(layout.critic_activations, x, target_value, *layout.critic_parameters)
+        return loss, {"td_error": td_error, "next_state_value": next_value.squeeze(-1), "pred_value": current_qvalue, "target_value": target_value}
+
+    def actor_loss(self, tensordict) -> tuple[torch.Tensor, dict]:
+        """``-Q_1(s, pi(s)).mean()``: TD3Loss's actor loss (it keeps ``Q[0]`` of both critics), with
+        the first critic's parameters detached; its gradient is :class:`_ActorLoss`'s."""
+        if self._refusal(tensordict) is not None:
+            return super().actor_loss(tensordict)
+        observation = tensordict.get("observation")
+        if self._needs_gradient(observation):
+            return super().actor_loss(tensordict)
+        layout = self._manual_layout()
+        loss, state_action_value = _ActorLoss.apply(layout.actor_spec, layout.actor_constants, observation, *layout.actor_parameters)
+        return loss, {"state_action_value_actor": state_action_value}
+
+    def _refusal(self, tensordict) -> str | None:
+        """:meth:`refusal`'s reason without the prefix (cheap: the networks are described once)."""
+        layout = self._manual_layout()
+        if isinstance(layout, str):
+            return layout
+        if self.loss_function != "l2":
+            return f"loss_function={self.loss_function}"
+        if self.reduction != "mean":
+            return f"reduction={self.reduction}"
+        if self.tensor_keys != td3_loss_default_keys():
+            return "tensor keys other than TD3Loss's defaults"
+        estimator = self.value_estimator
+        if type(estimator) is not TD0Estimator:
+            return f"value estimator {type(estimator).__name__}"
+        if estimator.average_rewards:
+            return "average_rewards"
+        keys = estimator.tensor_keys
+        if (keys.reward, keys.done, keys.terminated) != ("reward", "done", "terminated"):
+            return "value estimator keys other than the defaults"
+        if module_hooks(layout.modules):
+            return "module hooks"
+        if torch.is_autocast_enabled(layout.device_type):
+            return "autocast"
+        if tensordict is None:
+            return None
+        if reweights_or_masks(self, tensordict):
+            return "prioritised weights or loss mask"
+        if tensordict.batch_dims != 1:
+            return f"batch of {tensordict.batch_dims} dims"
+        if tensordict.get(keys.steps_to_next_obs, None) is not None:
+            return "steps_to_next_obs"
+        return None
+
+    @staticmethod
+    def _needs_gradient(*tensors) -> bool:
+        """Whether a batch tensor needs a gradient (TD3Loss would give it one, the hand-written gradients do not)."""
+        return any(tensor.requires_grad for tensor in tensors)
+
+    def _manual_layout(self):
+        """The networks as :class:`_ManualGradLayout`, built once (TorchRL keeps the parameters in place
+        for the life of the loss, as :class:`ForeachSoftUpdate` relies on too), or the reason the
+        hand-written path does not apply to them."""
+        layout = self.__dict__.get("_manual")
+        if layout is None:
+            layout = self.__dict__["_manual"] = self._describe()
+        return layout
+
+    def _describe(self):
+        """:meth:`_manual_layout`'s value."""
+        if self.num_qvalue_nets != 2:
+            return f"num_qvalue_nets={self.num_qvalue_nets}"
+        if not (self.delay_actor and self.delay_qvalue):
+            return "no target actor or critic (delay_actor/delay_qvalue False)"
+        overridden = overridden_td3_loss_internals(type(self), ManualGradTD3Loss)
+        if overridden:
+            return f"{type(self).__name__} overrides {overridden[0]}"
+        actor, critic = self.actor_network, self.qvalue_network
+        steps = actor.module if type(actor) is TensorDictSequential else ()
+        if not (
+            len(steps) == 2
+            and type(steps[0]) is TensorDictModule
+            and type(steps[1]) is TanhModule
+            and list(steps[0].in_keys) == ["observation"]
+            and list(steps[0].out_keys) == list(steps[1].in_keys)
+            and len(steps[1].in_keys) == 1
+            and list(steps[1].out_keys) == ["action"]
+        ):
+            return "actor is not TensorDictModule(MLP, observation) + TanhModule -> action"
+        actor_mlp = _plain_mlp(steps[0].module)
+        if actor_mlp is None:
+            return "actor MLP is not Linear layers with tanh or ReLU between them"
+        if not (
+            type(critic) in (TensorDictModule, ValueOperator)
+            and type(critic.module) is MLP  # its forward concatenates the in_keys
+            and list(critic.in_keys) == ["observation", "action"]
+            and list(critic.out_keys) == ["state_action_value"]
+        ):
+            return "critic is not an MLP over (observation, action) -> state_action_value"
+        critic_mlp = _plain_mlp(critic.module)
+        if critic_mlp is None:
+            return "critic MLP is not Linear layers with tanh or ReLU between them"
+        return _ManualGradLayout(self, actor_mlp, critic_mlp)
+
+
+class _CriticLoss(torch.autograd.Function):
+    """TD3's critic loss ``sum_k mean_B (Q_k(s, a) - y)^2`` of the stacked critics (one ``baddbmm`` per
+    layer for both) and its gradient by the chain rule from ``dL/dQ = 2 (Q - y) / B``.
+
+    ``forward(activations, cat(s, a), y, w_1, b_1, w_2, ...)`` returns the loss, ``Q`` and the
+    squared errors (the last two without gradient); ``backward`` the gradients of the parameters
+    that need one (None for the others), scaled by the loss's incoming gradient.
+    """
+
+    @staticmethod
+    def forward(ctx, activations, x, target, *parameters):
+        inputs = []
+        layers = _layers(parameters, activations)
+        current_qvalue = _forward(layers, x.expand(parameters[0].shape[0], *x.shape), inputs).squeeze(-1)
+        error = current_qvalue - target
+        td_error = error.pow(2)
+        loss = td_error.sum(0).mean()
+        ctx.save_for_backward(error, *parameters, *inputs)  # autograd frees them after the backward
+        ctx.activations = activations
+        ctx.mark_non_differentiable(current_qvalue, td_error)
+        ctx.set_materialize_grads(False)
+        return loss, current_qvalue, td_error
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, grad_loss, _grad_qvalue, _grad_td_error):
+        error, *saved = ctx.saved_tensors
+        count = 2 * len(ctx.activations)
+        if grad_loss is None:
+            return (None,) * (3 + count)
+        grad = (error * (2.0 / error.shape[-1])).unsqueeze(-1) * grad_loss  # dL/dQ, [2, B, 1]
+        grads, _ = _backward(_layers(saved[:count], ctx.activations), saved[count:], grad, ctx.needs_input_grad[3:])
+        return None, None, None, *grads
+
+
+class _ActorLoss(torch.autograd.Function):
+    """TD3's actor loss ``-mean_B Q_1(s, pi(s))`` and its gradient w.r.t. the actor's parameters: from
+    ``dL/dQ_1 = -1/B`` back through the first critic (detached: its weights only carry the gradient)
+    to the action, through ``TanhModule``'s squashing, then through the actor's layers.
+
+    ``forward(spec, constants, s, *actor parameters)`` returns the loss and ``Q_1`` (without
+    gradient); ``spec`` = (actor activations, TanhModule's ``clamp`` and ``non_trivial``),
+    ``constants`` = (action low, action high, the first critic's detached layers).
+    """
+
+    @staticmethod
+    def forward(ctx, spec, constants, observation, *parameters):
+        activations, clamp, non_trivial = spec
+        low, high, critic1 = constants
+        actor_inputs, critic_inputs = [], []
+        squashed = _forward(_layers(parameters, activations), observation, actor_inputs).tanh()  # squash(), step by step: its backward needs each step
+        eps = torch.finfo(squashed.dtype).resolution
+        clamped = squashed.clamp(-1 + eps, 1 - eps) if clamp else squashed
+        action = low + (high - low) * (clamped + 1) / 2 if non_trivial else clamped
+        state_action_value = _forward(critic1, torch.cat([observation, action], -1), critic_inputs).squeeze(-1)
+        loss = -state_action_value.mean()
+        ctx.save_for_backward(squashed, *parameters, *actor_inputs, *critic_inputs)  # autograd frees them after the backward
+        ctx.spec, ctx.constants, ctx.observation_dim = spec, constants, observation.shape[-1]
+        ctx.mark_non_differentiable(state_action_value)
+        ctx.set_materialize_grads(False)
+        return loss, state_action_value
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, grad_loss, _grad_value):
+        activations, clamp, non_trivial = ctx.spec
+        low, high, critic1 = ctx.constants
+        count = 2 * len(activations)
+        squashed, *saved = ctx.saved_tensors
+        parameters, actor_inputs, critic_inputs = saved[:count], saved[count : count + len(activations)], saved[count + len(activations) :]
+        if grad_loss is None:
+            return (None,) * (3 + count)
+        batch = squashed.shape[0]
+        grad = torch.full((batch, 1), -1.0 / batch, dtype=squashed.dtype, device=squashed.device) * grad_loss  # dL/dQ_1
+        _, grad = _backward(critic1, critic_inputs, grad, (False,) * (2 * len(critic1)), input_grad=True)
+        grad = grad[:, ctx.observation_dim :]  # dL/d action
+        if non_trivial:
+            grad = grad / 2 * (high - low)
+        if clamp:
+            eps = torch.finfo(squashed.dtype).resolution
+            grad = torch.where((squashed >= -1 + eps) & (squashed <= 1 - eps), grad, 0.0)
+        grads, _ = _backward(_layers(parameters, activations), actor_inputs, torch.ops.aten.tanh_backward(grad, squashed), ctx.needs_input_grad[3:])
+        return None, None, None, *grads
+
+
+def _layers(parameters, activations) -> list:
+    """``(weight, bias, activation)`` per layer from ``(w_1, b_1, w_2, b_2, ...)``."""
+    return [(parameters[2 * index], parameters[2 * index + 1], act) for index, act in enumerate(activations)]
+
+
+def _stacked(layers, observation, action) -> torch.Tensor:
+    """``[2, B]`` values of the stacked critics: one ``baddbmm`` per layer."""
+    x = torch.cat([observation, action], -1)
+    return _forward(layers, x.expand(layers[0][0].shape[0], *x.shape)).squeeze(-1)
+
+
+def _forward(layers, x: torch.Tensor, inputs: list | None = None) -> torch.Tensor:
+    """``x`` through ``(weight, bias, activation)`` layers: ``addmm`` for a network's ``[out, in]``
+    weights, ``baddbmm`` for the twin critics' stacked ``[2, out, in]``. ``inputs`` (if given)
+    receives each layer's input, which :func:`_backward` needs."""
+    for weight, bias, act in layers:
+        if inputs is not None:
+            inputs.append(x)
+        if weight.dim() == 2:
+            x = torch.addmm(bias, x, weight.t())
+        else:
+            x = torch.baddbmm(bias.unsqueeze(1), x, weight.transpose(1, 2))
+        if act is not None:
+            x = act(x)
+    return x
+
+
+def _backward(layers, inputs: list, grad: torch.Tensor, needs, input_grad: bool = False) -> tuple[list, torch.Tensor | None]:
+    """The chain rule back through :func:`_forward`'s ``layers`` from ``grad`` = dL/d(output): per layer
+    ``dW = g^T x`` and ``db = sum over the batch of g`` where ``needs`` (one flag per weight and bias)
+    asks for them, then ``g <- (g W) * act'(x)`` while a layer below (or, with ``input_grad``, the
+    input) needs it. Returns (the parameters' gradients, None where not asked; dL/d input or None)."""
+    grads = [None] * len(needs)
+    lowest = 0 if input_grad else next((index // 2 for index, need in enumerate(needs) if need), len(layers))
+    for index in range(len(layers) - 1, lowest - 1, -1):
+        weight = layers[index][0]
+        if needs[2 * index]:
+            grads[2 * index] = torch.matmul(grad.transpose(-2, -1), inputs[index])
+        if needs[2 * index + 1]:
+            grads[2 * index + 1] = grad.sum(-2)
+        if index > lowest or input_grad:
+            grad = torch.matmul(grad, weight)
+            if index:
+                grad = _ACTIVATION_BACKWARD[layers[index - 1][2]](grad, inputs[index])
+    return grads, grad if input_grad else None
+
+
+class _ManualGradLayout:
+    """The tensors :class:`ManualGradTD3Loss` computes with, looked up once instead of ~30 TensorDict
+    lookups per update: ``(w_1, b_1, ...)`` and activations of the actor and the stacked critics,
+    ``(weight, bias, activation)`` layers of the target networks and of the first critic (detached,
+    for the actor loss), the action bounds of both actors, the modules whose hooks would change
+    the computation."""
+
+    def __init__(self, loss: TD3Loss, actor_mlp, critic_mlp):
+        def parameters(params, prefix, mlp):
+            return tuple(params.get((*prefix, name, kind)) for name, _ in mlp for kind in ("weight", "bias"))
+
+        actor_prefix = ("module", "0", "module")
+        self.actor_parameters = parameters(loss.actor_network_params, actor_prefix, actor_mlp)
+        self.target_actor = _layers(parameters(loss.target_actor_network_params, actor_prefix, actor_mlp), [act for _, act in actor_mlp])
+        self.bounds, self.target_bounds = (
+            (params.get(("module", "1", "action_low")), params.get(("module", "1", "action_high")))
+            for params in (loss.actor_network_params, loss.target_actor_network_params)
+        )
+        self.critic_activations = tuple(act for _, act in critic_mlp)
+        self.critic_parameters = parameters(loss.qvalue_network_params, ("module",), critic_mlp)
+        self.target_critics = _layers(parameters(loss.target_qvalue_network_params, ("module",), critic_mlp), self.critic_activations)
+        critic1 = _layers(tuple(p.detach()[0] for p in self.critic_parameters), self.critic_activations)
+        self.actor_constants = (*self.bounds, critic1)
+        tanh_module = loss.actor_network.module[1]
+        self.actor_spec = (tuple(act for _, act in actor_mlp), bool(tanh_module.clamp), bool(tanh_module.non_trivial))
+        self.modules = (*loss.actor_network.modules(), *loss.qvalue_network.modules())
+        self.device_type = self.critic_parameters[0].device.type
