@@ -1,0 +1,38 @@
+"""What a recipe says about the algorithm it runs, so that the run plumbing and the report need not
+know any algorithm by name.
+
+A recipe module declares ``ALGORITHMS``, one :class:`AlgorithmInfo` per name its runs can write
+into ``summary.json`` (a recipe with variants, such as ``buffer.mode=shared``, lists each), and
+passes the one a config runs to :func:`~torchrl_esrl.run.lifecycle.recipe_main`. The run prints
+and plots with it; the report reads every recipe's ``ALGORITHMS`` (:func:`discover`) to label and
+order its rows.
+"""
+from __future__ import annotations
+
+import importlib.util
+from dataclasses import dataclass
+from pathlib import Path
+
+
+@dataclass(frozen=True)
+class AlgorithmInfo:
+    """name: ``summary.json``'s ``algorithm`` (the report groups runs by it); label: its display
+    name; returned: the policy it returns, in words (``"ES mean"``); rank: its place among the
+    report's rows (smaller first, then by label)."""
+
+    name: str
+    label: str
+    returned: str
+    rank: int = 100
+
+
+def discover(recipes_dir: str | Path) -> dict[str, AlgorithmInfo]:
+    """Every ``ALGORITHMS`` entry of the recipe modules in ``recipes_dir``, by name."""
+    found: dict[str, AlgorithmInfo] = {}
+    for path in sorted(Path(recipes_dir).glob("*.py")):
+        spec = importlib.util.spec_from_file_location(f"_recipe_{path.stem}", path)
+        module = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(module)
+        for info in getattr(module, "ALGORITHMS", ()):
+            found[info.name] = info
+    return found
