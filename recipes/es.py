@@ -11,8 +11,11 @@ from __future__ import annotations
 from omegaconf import DictConfig
 
 from torchrl_esrl.algorithm.es_phase import GenerationReturns
-from torchrl_esrl.run.factories import make_actor_critic, make_es, make_es_collector, make_train_env
+from torchrl_esrl.run.algorithm_info import AlgorithmInfo
+from torchrl_esrl.run.factories import es_holdings, make_actor_critic, make_es, make_es_collector, make_train_env
 from torchrl_esrl.run.lifecycle import Run, recipe_main
+
+ALGORITHMS = (AlgorithmInfo("es", "OpenAI-ES", returned="ES mean", rank=6),)
 
 
 def train(cfg: DictConfig, run: Run) -> dict:
@@ -38,7 +41,12 @@ def train(cfg: DictConfig, run: Run) -> dict:
     return run.finish(es.mean, {"es_generations": es.generation})
 
 
-main = recipe_main(train, config_name="es", algorithm="es")
+def holdings(cfg: DictConfig, sizes) -> list:
+    """What :func:`train` builds: OpenAI-ES and its generation; no replay buffer, no critic."""
+    return es_holdings(cfg, sizes)
+
+
+main = recipe_main(train, config_name="es", algorithm=ALGORITHMS[0], holdings=holdings)
 
 if __name__ == "__main__":
     main()

@@ -19,6 +19,8 @@ from torchrl_esrl.errors import check_finite
 from torchrl_esrl.algorithm.td3_phase import td3_phase
 from torchrl_esrl.modules.networks import flat_parameters
 from torchrl_esrl.run.factories import (
+    buffer_holdings,
+    es_holdings,
     make_actor_critic,
     make_es,
     make_es_collector,
@@ -29,8 +31,18 @@ from torchrl_esrl.run.factories import (
     make_frame_batches,
     make_threshold,
     make_train_env,
+    td3_holdings,
 )
+from torchrl_esrl.run.algorithm_info import AlgorithmInfo
 from torchrl_esrl.run.lifecycle import Run, recipe_main
+
+# One name per variant (buffer.mode, overwrite.mode): runs of different variants are different rows.
+ALGORITHMS = (
+    AlgorithmInfo("es_td3_buffers", "ES-TD3Buffers", returned="ES mean", rank=0),
+    AlgorithmInfo("es_td3_buffers_soft", "ES-TD3Buffers (soft overwrite)", returned="ES mean", rank=1),
+    AlgorithmInfo("es_td3_shared", "ES-TD3 (one shared buffer)", returned="ES mean", rank=2),
+    AlgorithmInfo("es_td3_shared_soft", "ES-TD3 (one shared buffer, soft overwrite)", returned="ES mean", rank=3),
+)
 
 
 def train(cfg: DictConfig, run: Run) -> dict:
@@ -88,7 +100,17 @@ def train(cfg: DictConfig, run: Run) -> dict:
     }, alias="final_es_mean_return")
 
 
-main = recipe_main(train, config_name="config", algorithm=lambda cfg: ("es_td3_shared" if cfg.buffer.mode == "shared" else "es_td3_buffers") + ("_soft" if cfg.overwrite.mode == "soft" else ""))
+def algorithm(cfg: DictConfig) -> AlgorithmInfo:
+    """The variant ``cfg`` runs: the buffer mode, then the overwrite mode."""
+    return ALGORITHMS[2 * (cfg.buffer.mode == "shared") + (cfg.overwrite.mode == "soft")]
+
+
+def holdings(cfg: DictConfig, sizes) -> list:
+    """What :func:`train` builds: the TD3 learner, the three buffers (one in shared mode), OpenAI-ES and its generation."""
+    return [*buffer_holdings(cfg, sizes, buffers=1 if cfg.buffer.mode == "shared" else 3), *td3_holdings(cfg, sizes), *es_holdings(cfg, sizes)]
+
+
+main = recipe_main(train, config_name="config", algorithm=algorithm, holdings=holdings)
 
 if __name__ == "__main__":
     main()

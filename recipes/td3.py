@@ -13,8 +13,11 @@ from omegaconf import DictConfig
 from torchrl_esrl.algorithm.td3_phase import td3_phase
 from torchrl_esrl.collectors.td3_collector import TD3EnvState
 from torchrl_esrl.modules.networks import flat_parameters
-from torchrl_esrl.run.factories import make_actor_critic, make_multibuffer, make_td3, make_frame_batches, make_train_env
+from torchrl_esrl.run.algorithm_info import AlgorithmInfo
+from torchrl_esrl.run.factories import buffer_holdings, make_actor_critic, make_multibuffer, make_td3, make_frame_batches, make_train_env, td3_holdings
 from torchrl_esrl.run.lifecycle import Run, recipe_main
+
+ALGORITHMS = (AlgorithmInfo("td3", "TD3", returned="TD3 actor", rank=4),)
 
 
 def train(cfg: DictConfig, run: Run) -> dict:
@@ -44,7 +47,12 @@ def train(cfg: DictConfig, run: Run) -> dict:
     return run.finish(flat_parameters(actor), {"td3_updates": td3.updates})
 
 
-main = recipe_main(train, config_name="td3", algorithm="td3")
+def holdings(cfg: DictConfig, sizes) -> list:
+    """What :func:`train` builds: the TD3 learner and one replay buffer."""
+    return [*td3_holdings(cfg, sizes), *buffer_holdings(cfg, sizes, buffers=1)]
+
+
+main = recipe_main(train, config_name="td3", algorithm=ALGORITHMS[0], holdings=holdings)
 
 if __name__ == "__main__":
     main()

@@ -28,6 +28,16 @@ def recipe_command(script: str, *overrides: str) -> list[str]:
     return [sys.executable, str(ROOT / "recipes" / script), *multirun, TINY, *(o for o in overrides if o != "-m")]
 
 
+def load_recipe(script: str):
+    """The recipe module ``recipes/<script>``, imported (its ``ALGORITHMS``, ``holdings``, ``train``)."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location(f"recipe_{Path(script).stem}", ROOT / "recipes" / script)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
 @pytest.fixture(scope="session")
 def run_recipe():
     """Run a recipe with the tiny budget in a subprocess: ``run_recipe("es_td3.py", *overrides)``."""

@@ -20,7 +20,7 @@ from pathlib import Path
 
 import pytest
 import torch
-from conftest import ROOT, TINY, recipe_command
+from conftest import ROOT, TINY, load_recipe, recipe_command
 
 from torchrl_esrl.run.metrics import read_metrics
 
@@ -198,7 +198,11 @@ CEM_VALUE_ERRORS = [  # conf/cem_rl.yaml's own section
 ]
 
 
-@pytest.mark.parametrize("config, override, field", [("config", *case) for case in VALUE_ERRORS] + [("cem_rl", *case) for case in CEM_VALUE_ERRORS])
+@pytest.mark.parametrize(
+    "config, override, field",
+    [("config", *case) for case in VALUE_ERRORS] + [(config, *case) for config in ("cem_rl", "cem_rl_buffers") for case in CEM_VALUE_ERRORS]
+    + [("cem_rl_buffers", "buffer.ratio=[0.5,0.2]", "buffer.ratio"), ("cem_rl_buffers", "threshold.fraction=2", "threshold.fraction")],
+)
 def test_bad_value_gives_a_one_line_error_naming_the_field(tmp_path, config, override, field):
     from hydra import compose, initialize_config_dir
 
@@ -292,6 +296,7 @@ BASELINES = [
     ("td3.py", [], "checkpoint-000000000100"),
     ("es.py", ["iterations=4"], "checkpoint-000000000001"),
     ("cem_rl.py", ["iterations=4", "cem.population_size=4", "cem.start_frames=0"], "checkpoint-000000000001"),
+    ("cem_rl_buffers.py", ["iterations=4", "cem.population_size=4", "cem.start_frames=0"], "checkpoint-000000000001"),
 ]
 
 
@@ -316,9 +321,8 @@ def test_baseline_killed_then_resumed_gives_the_same_metrics(tmp_path, script, e
 # ---------------------------------------------------------------- runs that survive what users do
 # Every recipe, finished once with the budget above (iterations=2); CEM-RL with a small population
 # that learns from the first generation.
-RECIPES = {"es_td3.py": [], "td3.py": [], "es.py": [], "cem_rl.py": ["cem.population_size=4", "cem.start_frames=0"]}
-CONFIGS = {"es_td3.py": "config", "td3.py": "td3", "es.py": "es", "cem_rl.py": "cem_rl"}
-ALGORITHMS = {"es_td3.py": "es_td3_buffers", "td3.py": "td3", "es.py": "es", "cem_rl.py": "cem_rl"}
+RECIPES = {"es_td3.py": [], "td3.py": [], "es.py": [], "cem_rl.py": ["cem.population_size=4", "cem.start_frames=0"], "cem_rl_buffers.py": ["cem.population_size=4", "cem.start_frames=0"]}
+CONFIGS = {"es_td3.py": "config", "td3.py": "td3", "es.py": "es", "cem_rl.py": "cem_rl", "cem_rl_buffers.py": "cem_rl_buffers"}
 
 
 @pytest.fixture(scope="module")
@@ -375,6 +379,17 @@ def test_rerunning_a_finished_run_says_so_and_changes_nothing(finished, script):
 
 
 @pytest.mark.e2e
+def test_cem_rl_with_routed_buffers_fills_good_bad_and_noisy_and_learns_at_the_ratio(finished):
+    run_dir = finished("cem_rl_buffers.py")
+    rows, summary = read_metrics(run_dir / "metrics.csv"), json.loads((run_dir / "summary.json").read_text())
+    assert summary["algorithm"] == "cem_rl_buffers" and summary["ratio"] == [0.5, 0.2, 0.3] and summary["buffer_mode"] == "multi"
+    last = rows[-1]
+    assert last["good_size"] > 0 and last["bad_size"] > 0 and last["noisy_size"] > 0
+    assert last["good_size"] + last["bad_size"] + last["noisy_size"] == last["td3_frames"]  # every member's episode, once
+    assert last["td3_updates"] > 0 and last["best_return"] >= last["threshold"]
+
+
+@pytest.mark.e2e
 def test_fresh_run_goes_next_to_the_finished_one(reference, tmp_path):
     run_dir = tmp_path / "run"
     shutil.copytree(reference, run_dir)
@@ -387,7 +402,7 @@ def test_fresh_run_goes_next_to_the_finished_one(reference, tmp_path):
     assert summary_without_wall_time(tmp_path / "run-2") == summary_without_wall_time(reference)
 
 
-KILLS = [("es_td3.py", "final_evaluation"), ("es_td3.py", "summary_write"), ("td3.py", "summary_write"), ("es.py", "final_evaluation"), ("cem_rl.py", "summary_write")]
+KILLS = [("es_td3.py", "final_evaluation"), ("es_td3.py", "summary_write"), ("td3.py", "summary_write"), ("es.py", "final_evaluation"), ("cem_rl.py", "summary_write"), ("cem_rl_buffers.py", "summary_write")]
 
 
 @pytest.mark.e2e
@@ -527,7 +542,7 @@ def test_memory_and_disk_checks_name_what_is_needed_what_is_there_and_the_field(
     from torchrl_esrl.run.capacity import check_capacity, estimate, human
 
     cfg = compose_tiny("config")
-    needed = estimate(cfg, "es_td3_buffers", env_sizes(cfg.env.id, cfg.env.max_episode_steps))
+    needed = estimate(load_recipe("es_td3.py").holdings(cfg, env_sizes(cfg.env.id, cfg.env.max_episode_steps)))
     plenty = 10**15
     check_capacity(cfg, needed, tmp_path / "run", memory=plenty, disk=(plenty, tmp_path))
     with pytest.raises(ConfigError) as error:
@@ -550,17 +565,17 @@ def test_estimate_matches_the_filled_buffers_and_the_written_checkpoint(finished
 
     from torchrl_esrl.data.multibuffer import MultiBuffer
     from torchrl_esrl.envs import env_sizes
-    from torchrl_esrl.run.capacity import CHECKPOINT_MARGIN, buffer_count, bytes_per_transition, estimate
+    from torchrl_esrl.run.capacity import CHECKPOINT_MARGIN, bytes_per_transition, estimate
     from torchrl_esrl.run.factories import make_multibuffer
     from torchrl_esrl.torchrl_private import tensor_storage_data
 
     run_dir = finished(script)
     cfg = compose_tiny(CONFIGS[script], *RECIPES[script])
     sizes = env_sizes(cfg.env.id, cfg.env.max_episode_steps)
-    needed = estimate(cfg, ALGORITHMS[script], sizes)
+    needed = estimate(load_recipe(script).holdings(cfg, sizes))
     newest = run_dir / "checkpoints" / checkpoints(run_dir)[-1]
     per_buffer = int(cfg.buffer.capacity) * bytes_per_transition(sizes.observation_dim, sizes.action_dim)
-    unallocated = buffer_count(ALGORITHMS[script])
+    unallocated = needed.memory.get("buffers", 0) // per_buffer  # the buffers the recipe builds
     if unallocated:  # the buffers as the run left them, loaded into real ones
         buffer = make_multibuffer(cfg) if script == "es_td3.py" else MultiBuffer(ratio=(0, 0, 1), capacity=cfg.buffer.capacity, batch_size=cfg.buffer.batch_size, min_size=cfg.buffer.min_size)
         Checkpoint(buffer=buffer).register_adapter(MultiBuffer, StateDictCheckpointAdapter()).load(newest, components=["buffer"])
@@ -703,7 +718,7 @@ def test_a_full_filesystem_stops_the_run_keeps_the_last_checkpoint_and_a_rerun_r
     from torchrl_esrl.run.capacity import estimate
 
     cfg = compose_tiny("config")
-    one = estimate(cfg, "es_td3_buffers", env_sizes(cfg.env.id, cfg.env.max_episode_steps)).checkpoint
+    one = estimate(load_recipe("es_td3.py").holdings(cfg, env_sizes(cfg.env.id, cfg.env.max_episode_steps))).checkpoint
     disk = small_filesystem((int(cfg.checkpoint.keep_last) + 1) * one + 8 * 2**20)  # room for the run, as checked before it starts
     run_dir = disk / "run"
     process = start(run_dir)

@@ -44,6 +44,8 @@ class DiagonalCEM:
         generator: torch RNG of the samples.
     """
 
+    HELD_COPIES = 2  # parameter-sized vectors held (and checkpointed): the mean and the diagonal variance
+
     def __init__(
         self,
         mean: torch.Tensor,

@@ -39,6 +39,8 @@ class OpenES:
         generator: torch RNG for the noise (seeded for reproducibility).
     """
 
+    HELD_COPIES = 3  # parameter-sized vectors held (and checkpointed): the mean and Adam's two moments
+
     def __init__(
         self,
         mean: torch.Tensor,

@@ -73,6 +73,12 @@ class TD3:
     :func:`torchrl_esrl.run.factories.make_td3` picks the fast pieces.
     """
 
+    # Parameter vectors held (and checkpointed), for the run's memory estimate: the actor, its
+    # target and Adam's two moments, plus the exploration policy's copy; each critic of the twin
+    # pair, its target and Adam's two moments.
+    HELD_ACTOR_COPIES = 4 + 1
+    HELD_CRITIC_COPIES = 2 * 4
+
     def __init__(
         self,
         actor: TensorDictSequential,

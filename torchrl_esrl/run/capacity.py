@@ -1,29 +1,32 @@
 """What a run will hold, estimated before any work, and checked against this machine.
 
-:func:`estimate` sizes, from the config and the task's observation and action sizes:
+A recipe lists what it builds as :class:`Holding` s (its ``holdings(cfg, sizes)``, passed to
+:func:`~torchrl_esrl.run.lifecycle.recipe_main`): each component says what it holds, from the
+config and the task's observation and action sizes, without allocating it:
 
-- the replay buffers at full capacity (ES-TD3Buffers: good, bad and noisy, or one with
-  ``buffer.mode=shared``; TD3 and CEM-RL: one; OpenAI-ES: none). Each transition holds what
-  :data:`~torchrl_esrl.data.multibuffer.TRANSITION_KEYS` lists plus TorchRL's ``index``
+- replay buffers at full capacity (:func:`~torchrl_esrl.run.factories.buffer_holdings`):
+  each transition holds what :data:`~torchrl_esrl.data.multibuffer.TRANSITION_KEYS` lists plus TorchRL's ``index``
   (:func:`bytes_per_transition`); a ``LazyTensorStorage`` allocates its whole capacity at the
   first write;
-- the population of a generation and its noise (OpenAI-ES, or CEM-RL's CEM) and that
-  generation's transitions, held until they are routed to the buffers;
-- the networks and optimiser states (:func:`parameter_copies`);
-- one checkpoint on disk: the buffers and the networks, plus a margin for the manifests.
+- an evolution strategy's population and noise, and one generation's transitions, held until
+  they are routed to the buffers (:func:`~torchrl_esrl.run.factories.es_holdings`,
+  :func:`~torchrl_esrl.run.factories.cem_holdings`);
+- networks and optimiser states (:func:`~torchrl_esrl.run.factories.td3_holdings`).
 
-:func:`check_capacity` refuses a run whose estimate exceeds the available memory or the free
-disk of its run directory (``checkpoint.keep_last`` checkpoints are kept, one more while a
-save is written), with one line naming what is needed, what is there and the field to change.
+:func:`estimate` adds them up, and one checkpoint on disk (what is checkpointed, plus a margin
+for the manifests). :func:`check_capacity` refuses a run whose estimate exceeds the available
+memory or the free disk of its run directory (``checkpoint.keep_last`` checkpoints are kept,
+one more while a save is written), with one line naming what is needed, what is there and the
+field to change.
 """
 from __future__ import annotations
 
 import math
 import shutil
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from torchrl_esrl.envs import EnvSizes
 from torchrl_esrl.errors import ConfigError
 from torchrl_esrl.run.checkpoint import CHECKPOINT_DIR
 
@@ -42,34 +45,32 @@ def mlp_parameters(sizes: list[int]) -> int:
     return sum(a * b + b for a, b in zip(sizes[:-1], sizes[1:]))
 
 
-def parameter_copies(algorithm: str) -> tuple[int, int]:
-    """(actor-sized, critic-sized) parameter vectors a run holds and checkpoints.
+@dataclass(frozen=True)
+class Holding:
+    """Bytes one part of a run holds in memory. ``part``: ``buffers``, ``networks``,
+    ``population`` or ``generation`` (parts of one name add up); ``field``: the config key that
+    sizes it, named by a refusal; ``checkpointed``: written to every checkpoint too;
+    ``on_device``: on the run's ``device`` (GPU memory on ``cuda``), else on the host."""
 
-    TD3: actor, target actor, Adam's two moments (4) and twin critics, their targets and Adam's
-    moments (8 critics); the exploration policy holds the actor once more. OpenAI-ES: the mean
-    and Adam's two moments (3). CEM-RL's CEM: the mean and the diagonal variance (2)."""
-    if algorithm.startswith("es_td3"):
-        return 4 + 1 + 3, 8
-    if algorithm == "td3":
-        return 4 + 1, 8
-    if algorithm == "cem_rl":
-        return 4 + 2, 8
-    return 3, 0  # es
-
-
-def buffer_count(algorithm: str) -> int:
-    if algorithm.startswith("es_td3_shared"):
-        return 1
-    if algorithm.startswith("es_td3"):
-        return 3
-    return 0 if algorithm == "es" else 1
+    part: str
+    bytes: int
+    field: str
+    checkpointed: bool = True
+    on_device: bool = False
 
 
-def default_algorithm(cfg) -> str:
-    """The algorithm a config runs when the recipe is not named (the ES-TD3 config, or CEM-RL's)."""
-    if cfg.get("cem") is not None:
-        return "cem_rl"
-    return "es_td3_shared" if cfg.buffer.mode == "shared" else "es_td3_buffers"
+def network_holding(copies: int, parameters: int, field: str) -> Holding:
+    """``copies`` float32 vectors of ``parameters`` (a network, its target, optimiser moments)."""
+    return Holding("networks", FLOAT * copies * parameters, field)
+
+
+def population_holdings(parameters: int, population_size: int, antithetic: bool, episode_steps: int | None, transition: int, field: str) -> list[Holding]:
+    """One generation of an evolution strategy: the population, its noise and, for mirrored
+    sampling, the half drawn before mirroring; and its members' episodes until they are routed."""
+    return [
+        Holding("population", FLOAT * parameters * population_size * (4 + bool(antithetic)) // 2, field, checkpointed=False),
+        Holding("generation", population_size * (episode_steps or 0) * transition, f"{field} or env.max_episode_steps", checkpointed=False),
+    ]
 
 
 @dataclass
@@ -77,34 +78,23 @@ class Estimate:
     """Bytes a run will hold in memory (by part) and one checkpoint's size on disk."""
 
     memory: dict[str, int] = field(default_factory=dict)
+    fields: dict[str, str] = field(default_factory=dict)  # part -> the config key a refusal names
     buffer_memory: int = 0  # on cfg.device (the buffers' storage device)
     checkpoint: int = 0
-    population_field: str = "es.population_size"
 
     @property
     def memory_total(self) -> int:
         return sum(self.memory.values())
 
 
-def estimate(cfg, algorithm: str, sizes: EnvSizes) -> Estimate:
-    """What a run of ``algorithm`` with ``cfg`` on a task of ``sizes`` holds (module docstring)."""
-    transition = bytes_per_transition(sizes.observation_dim, sizes.action_dim)
-    buffers = buffer_count(algorithm) * int(cfg.buffer.capacity) * transition
-    actor = mlp_parameters([sizes.observation_dim, *cfg.actor.hidden, sizes.action_dim])
-    critic = mlp_parameters([sizes.observation_dim + sizes.action_dim, *cfg.td3.critic_hidden, 1])
-    actors, critics = parameter_copies(algorithm)
-    networks = FLOAT * (actors * actor + critics * critic)
-    result = Estimate(buffer_memory=buffers, checkpoint=buffers + networks + CHECKPOINT_MARGIN)
-    result.memory["buffers"] = buffers
-    result.memory["networks"] = networks
-    if algorithm != "td3":
-        cem = algorithm == "cem_rl"
-        population = int(cfg.cem.population_size if cem else cfg.es.population_size)
-        antithetic = bool(cfg.cem.antithetic if cem else cfg.es.antithetic)
-        # the population, its noise and, for mirrored sampling, the half drawn before mirroring
-        result.memory["population"] = FLOAT * actor * population * (4 + antithetic) // 2
-        result.memory["generation"] = population * (sizes.episode_steps or 0) * transition
-        result.population_field = "cem.population_size" if cem else "es.population_size"
+def estimate(holdings: Iterable[Holding]) -> Estimate:
+    """What a run holds, from what its recipe builds (module docstring)."""
+    result = Estimate(checkpoint=CHECKPOINT_MARGIN)
+    for held in holdings:
+        result.memory[held.part] = result.memory.get(held.part, 0) + held.bytes
+        result.fields.setdefault(held.part, held.field)
+        result.buffer_memory += held.bytes if held.on_device else 0
+        result.checkpoint += held.bytes if held.checkpointed else 0
     return result
 
 
@@ -160,7 +150,7 @@ def check_capacity(cfg, result: Estimate, run_dir: Path, memory: int | None = No
     if memory is not None and needed > memory:
         parts = {k: v for k, v in result.memory.items() if v and not (on_gpu and k == "buffers")}
         largest = max(parts, key=parts.get)
-        fields = {"buffers": "buffer.capacity", "population": result.population_field, "generation": f"{result.population_field} or env.max_episode_steps", "networks": "actor.hidden or td3.critic_hidden"}
+        fields = result.fields
         listed = ", ".join(f"{name} {human(size)}" for name, size in parts.items())
         raise ConfigError(f"{fields[largest].split(' ')[0]}: this run needs about {human(needed)} of memory ({listed}), {human(memory)} is available (allowed: a smaller {fields[largest]})")
     free, where = free_disk(run_dir) if disk is None else disk

@@ -32,6 +32,8 @@ from torchrl_esrl.algorithm.overwrite import OverwriteRule
 from torchrl_esrl.collectors.td3_collector import GymTD3Collector, make_td3_collector
 from torchrl_esrl.objectives.td3 import TD3, ForeachSoftUpdate, ManualGradTD3Loss
 from torchrl_esrl.data.threshold import Threshold
+from torchrl_esrl.es.cem import DiagonalCEM
+from torchrl_esrl.run.capacity import Holding, bytes_per_transition, mlp_parameters, network_holding, population_holdings
 from torchrl_esrl.threads import TD3_THREADS, job_cores
 
 IMPLEMENTATIONS = ("fast", "reference")
@@ -162,8 +164,6 @@ def make_es(cfg: DictConfig, actor) -> OpenES:
 
 def make_cem(cfg: DictConfig, actor):
     """CEM-RL's diagonal CEM (baseline, ``conf/cem_rl.yaml``) centred on the actor's parameters."""
-    from torchrl_esrl.es.cem import DiagonalCEM
-
     c = cfg.cem
     return DiagonalCEM(
         flat_parameters(actor).cpu(),
@@ -217,6 +217,45 @@ def make_evaluator(cfg: DictConfig, actor, pieces: Collection[str] | None = None
     actor = cpu_actor(actor)
     population = es_population(actor, _pieces(cfg, pieces))
     return ESCollector(make_env_spec(cfg), actor, backend="gym", seed=int(cfg.seed) + 1000, population=population)
+
+
+# ------------------------------------------------------------ what each component will hold
+# (the recipe's ``holdings``: the run's memory and disk estimate, torchrl_esrl/run/capacity.py)
+NETWORK_FIELD = "actor.hidden or td3.critic_hidden"
+
+
+def _actor_parameters(cfg: DictConfig, sizes) -> int:
+    return mlp_parameters([sizes.observation_dim, *cfg.actor.hidden, sizes.action_dim])
+
+
+def buffer_holdings(cfg: DictConfig, sizes, buffers: int) -> list[Holding]:
+    """``buffers`` replay buffers of ``buffer.capacity`` transitions each (:func:`make_multibuffer`
+    with its three buffers, or ``buffers=1`` with one), on ``device``."""
+    size = buffers * int(cfg.buffer.capacity) * bytes_per_transition(sizes.observation_dim, sizes.action_dim)
+    return [Holding("buffers", size, "buffer.capacity", on_device=True)]
+
+
+def td3_holdings(cfg: DictConfig, sizes) -> list[Holding]:
+    """:func:`make_td3`'s networks and optimiser states (:attr:`TD3.HELD_ACTOR_COPIES`, ...)."""
+    critic = mlp_parameters([sizes.observation_dim + sizes.action_dim, *cfg.td3.critic_hidden, 1])
+    return [network_holding(TD3.HELD_ACTOR_COPIES, _actor_parameters(cfg, sizes), NETWORK_FIELD), network_holding(TD3.HELD_CRITIC_COPIES, critic, NETWORK_FIELD)]
+
+
+def _strategy_holdings(cfg: DictConfig, sizes, section: str, copies: int) -> list[Holding]:
+    c, parameters = cfg[section], _actor_parameters(cfg, sizes)
+    transition = bytes_per_transition(sizes.observation_dim, sizes.action_dim)
+    field = f"{section}.population_size"
+    return [network_holding(copies, parameters, NETWORK_FIELD), *population_holdings(parameters, int(c.population_size), bool(c.antithetic), sizes.episode_steps, transition, field)]
+
+
+def es_holdings(cfg: DictConfig, sizes) -> list[Holding]:
+    """:func:`make_es`'s OpenAI-ES state and one generation (population, noise, episodes)."""
+    return _strategy_holdings(cfg, sizes, "es", OpenES.HELD_COPIES)
+
+
+def cem_holdings(cfg: DictConfig, sizes) -> list[Holding]:
+    """:func:`make_cem`'s CEM state and one generation (population, noise, episodes)."""
+    return _strategy_holdings(cfg, sizes, "cem", DiagonalCEM.HELD_COPIES)
 
 
 def make_threshold(cfg: DictConfig) -> Threshold:

@@ -27,6 +27,7 @@ from omegaconf import DictConfig
 from torchrl_esrl.envs import quiet_logs
 from torchrl_esrl.collectors.es_collector import ESCollector
 from torchrl_esrl.modules.networks import flat_parameters
+from torchrl_esrl.run.algorithm_info import AlgorithmInfo
 from torchrl_esrl.run.plot import plot_run
 from torchrl_esrl.run.console import returns_text
 from torchrl_esrl.run.determinism import seed_everything
@@ -47,16 +48,19 @@ class RunHarness:
         cfg: the Hydra config (reads ``seed``, ``env``, ``eval``, ``logger``, ``experiment_name``,
             ``td3.frames_per_iteration``).
         run_dir: the Hydra run directory.
-        algorithm: name written to ``summary.json`` (the report groups runs by it).
+        algorithm: what the recipe runs (:class:`~torchrl_esrl.run.algorithm_info.AlgorithmInfo`;
+            a bare name is its own label); its name goes into ``summary.json`` (the report groups
+            runs by it).
         clock: seconds since the run started (a resumable clock survives a restart); by default
             the time since this harness was built.
     """
 
-    def __init__(self, cfg: DictConfig, run_dir: str | Path, algorithm: str, clock: Callable[[], float] | None = None):
+    def __init__(self, cfg: DictConfig, run_dir: str | Path, algorithm: AlgorithmInfo | str, clock: Callable[[], float] | None = None):
         quiet_logs()
         seed_everything(cfg.seed)
         self.cfg = cfg
-        self.algorithm = algorithm
+        self.info = algorithm if isinstance(algorithm, AlgorithmInfo) else AlgorithmInfo(algorithm, algorithm, "returned policy")
+        self.algorithm = self.info.name
         self.run_dir = Path(run_dir)
         start = time.perf_counter()
         self.clock = clock or (lambda: time.perf_counter() - start)

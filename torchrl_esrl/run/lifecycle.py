@@ -1,6 +1,6 @@
-"""One run lifecycle for every recipe (ES-TD3Buffers, TD3, OpenAI-ES, CEM-RL).
+"""One run lifecycle for every recipe.
 
-``main = recipe_main(train, config_name=..., algorithm=...)`` gives a recipe's ``main``: Hydra
+``main = recipe_main(train, config_name=..., algorithm=..., holdings=...)`` gives a recipe's ``main``: Hydra
 composes ``conf/<config_name>.yaml``; the config, the task, the memory and disk the run needs and
 what the run directory holds are checked once, before Hydra writes into the run directory
 (:class:`ValidateBeforeRun`; in a multirun, each job checks its own); then ``train(cfg, run)``
@@ -44,9 +44,10 @@ from hydra.experimental.callback import Callback
 from omegaconf import DictConfig, OmegaConf, read_write
 from tqdm.auto import tqdm
 
-from torchrl_esrl.envs import EnvSpec, env_sizes
+from torchrl_esrl.envs import EnvSizes, EnvSpec, env_sizes
 from torchrl_esrl.errors import CheckpointWriteError, ConfigError
-from torchrl_esrl.run.capacity import estimate
+from torchrl_esrl.run.algorithm_info import AlgorithmInfo
+from torchrl_esrl.run.capacity import Holding, estimate
 from torchrl_esrl.run.checkpoint import CHECKPOINT_DIR, RunCheckpoint
 from torchrl_esrl.run.console import final_lines, iteration_line, print_config
 from torchrl_esrl.run.determinism import make_deterministic
@@ -55,7 +56,7 @@ from torchrl_esrl.run.harness import RunHarness
 from torchrl_esrl.run.lock import RunLock
 from torchrl_esrl.run.metrics import read_metrics
 from torchrl_esrl.run.progress import RunProgress
-from torchrl_esrl.run.resume import Finished, fresh_run_dir, holds_run, prepare_run
+from torchrl_esrl.run.resume import Finished, algorithm_of, fresh_run_dir, holds_run, prepare_run
 
 CONF_DIR = Path(__file__).resolve().parents[2] / "conf"
 log = logging.getLogger(__name__)  # under torchrl_esrl.run: the run directory's <recipe>.log only
@@ -139,9 +140,10 @@ class Run(RunHarness):
     :meth:`iterations`; what the loop body logs is checkpointed after it.
     """
 
-    def __init__(self, cfg: DictConfig, run_dir: Path, algorithm: str):
+    def __init__(self, cfg: DictConfig, run_dir: Path, algorithm: AlgorithmInfo | str, holdings: Callable[[DictConfig, EnvSizes], list[Holding]] = lambda cfg, sizes: []):
         self.progress = RunProgress()  # iteration, TD3 frames, the TD3 phase under way, the resumable clock
         super().__init__(cfg, run_dir, algorithm, clock=self.progress.wall_time)
+        self.holdings = holdings  # what the recipe builds: the expected checkpoint size
         make_deterministic()
         self.checkpoint: RunCheckpoint | None = None
         self.stop = StopOnSignal()  # installed by recipe_main's main
@@ -154,7 +156,7 @@ class Run(RunHarness):
         self.threads = threads_used(components)
         cfg = self.cfg
         config = OmegaConf.to_container(cfg, resolve=True)
-        size = estimate(cfg, self.algorithm, env_sizes(EnvSpec.from_config(cfg.env))).checkpoint  # checked before each save
+        size = estimate(self.holdings(cfg, env_sizes(EnvSpec.from_config(cfg.env)))).checkpoint  # checked before each save
         self.checkpoint = RunCheckpoint(self.run_dir, config, cfg.checkpoint.every_frames, cfg.checkpoint.keep_last, algorithm=self.algorithm, expected_bytes=size, progress=self.progress, evaluator=self.evaluator, **components)
         restored = self.checkpoint.restore()
         if restored is not None and self.log_.path.exists():
@@ -220,13 +222,21 @@ def threads_used(components: dict) -> dict:
     return threads
 
 
-def recipe_main(train: Callable[[DictConfig, Run], dict], config_name: str, algorithm: str | Callable[[DictConfig], str]) -> Callable[[], None]:
-    """The ``main`` of a recipe whose loop is ``train(cfg, run)``; ``algorithm`` names it in ``summary.json``."""
+def recipe_main(
+    train: Callable[[DictConfig, Run], dict],
+    config_name: str,
+    algorithm: AlgorithmInfo | Callable[[DictConfig], AlgorithmInfo],
+    holdings: Callable[[DictConfig, EnvSizes], list[Holding]],
+) -> Callable[[], None]:
+    """The ``main`` of a recipe whose loop is ``train(cfg, run)``, composed from ``conf/<config_name>.yaml``.
+    ``algorithm``: what it runs (a function of the config for a recipe with variants), named in
+    ``summary.json``; ``holdings(cfg, sizes)``: what it builds (:mod:`~torchrl_esrl.run.capacity`),
+    checked against the machine before any work."""
 
     @hydra.main(version_base="1.3", config_path=str(CONF_DIR), config_name=config_name)
     @functools.wraps(train)  # Hydra names the job, and its log file, after the recipe's file
     def main(cfg: DictConfig) -> None:
-        checked = _checked(cfg, algorithm)
+        checked = _checked(cfg, recipe)
         if checked is None:  # a finished multirun job: said so, nothing to do
             return
         cfg, run_dir, lock = checked
@@ -234,7 +244,7 @@ def recipe_main(train: Callable[[DictConfig, Run], dict], config_name: str, algo
         run = None
         try:
             print_config(cfg)  # only with logger.print_config=true; Hydra saves it in <run dir>/.hydra/
-            run = Run(cfg, run_dir, algorithm(cfg) if callable(algorithm) else algorithm)
+            run = Run(cfg, run_dir, algorithm_of(algorithm, cfg), holdings)
             run.stop = stop
             summary = train(cfg, run)
             signal.setitimer(signal.ITIMER_REAL, 0)  # finished before a stop point: a finished run
@@ -257,14 +267,15 @@ def recipe_main(train: Callable[[DictConfig, Run], dict], config_name: str, algo
         log.info(f"finished: {ending}")
         print(ending)
 
-    _recipe["algorithm"] = algorithm  # for ValidateBeforeRun
+    recipe = {"algorithm": algorithm, "holdings": holdings}
+    _recipe.update(recipe)  # for ValidateBeforeRun
     return functools.partial(run_cli, main)
 
 
 # ------------------------------------------------------------------ config checks, once a launch
 _prepared: list[tuple[DictConfig | None, Path]] = []  # what ValidateBeforeRun checked, for the task function
 _held: list[RunLock] = []  # the locks ValidateBeforeRun took: held until the process ends
-_recipe: dict = {}  # the algorithm of the recipe whose main runs (recipe_main)
+_recipe: dict = {}  # prepare_run's arguments of the recipe whose main runs (recipe_main)
 
 
 class ValidateBeforeRun(Callback):
@@ -281,7 +292,7 @@ class ValidateBeforeRun(Callback):
                 with read_write(config.hydra):
                     config.hydra.run.dir = str(run_dir)  # run_job reads it next
         try:
-            cfg, run_dir, lock = _locked(config, run_dir, _recipe.get("algorithm"))
+            cfg, run_dir, lock = _locked(config, run_dir, _recipe)
         except Finished as finished:
             print(finished, flush=True)
             raise SystemExit(0) from None
@@ -291,22 +302,22 @@ class ValidateBeforeRun(Callback):
         _prepared.append((cfg if config.resume else None, run_dir))
 
 
-def _locked(cfg: DictConfig, run_dir, algorithm) -> tuple[DictConfig, Path, RunLock]:
+def _locked(cfg: DictConfig, run_dir, recipe: dict) -> tuple[DictConfig, Path, RunLock]:
     """:func:`prepare_run`, then the run directory's lock; checked again under the lock if the
     directory holds a run (another writer may have changed it between the two)."""
-    checked, run_dir = prepare_run(cfg, run_dir, algorithm)
+    checked, run_dir = prepare_run(cfg, run_dir, **recipe)
     field = "resume" if cfg.resume else "hydra.run.dir"
     lock = RunLock(run_dir).acquire(field)
     try:
         if holds_run(run_dir):
-            checked, run_dir = prepare_run(cfg, run_dir, algorithm)
+            checked, run_dir = prepare_run(cfg, run_dir, **recipe)
     except BaseException:
         lock.release()
         raise
     return checked, run_dir, lock
 
 
-def _checked(cfg: DictConfig, algorithm) -> tuple[DictConfig, Path, RunLock | None] | None:
+def _checked(cfg: DictConfig, recipe: dict) -> tuple[DictConfig, Path, RunLock | None] | None:
     """The config to run (the saved one on ``resume``), the run directory and, for a multirun
     job, the lock it holds until the job ends; None for a finished multirun job (its line printed)."""
     if _prepared:  # a single run, checked (and locked) by ValidateBeforeRun
@@ -316,7 +327,7 @@ def _checked(cfg: DictConfig, algorithm) -> tuple[DictConfig, Path, RunLock | No
     if cfg.get("fresh") and not cfg.resume:
         run_dir = fresh_run_dir(run_dir)
     try:
-        return _locked(cfg, run_dir, algorithm)
+        return _locked(cfg, run_dir, recipe)
     except Finished as finished:
         print(finished, flush=True)
         return None

@@ -17,9 +17,10 @@ from pathlib import Path
 from omegaconf import DictConfig, OmegaConf
 from torchrl.checkpoint import Checkpoint
 
-from torchrl_esrl.envs import EnvSpec, env_sizes, resolve_env_id
+from torchrl_esrl.envs import EnvSizes, EnvSpec, env_sizes, resolve_env_id
 from torchrl_esrl.errors import ConfigError
-from torchrl_esrl.run.capacity import check_capacity, default_algorithm, estimate
+from torchrl_esrl.run.algorithm_info import AlgorithmInfo
+from torchrl_esrl.run.capacity import Holding, check_capacity, estimate
 from torchrl_esrl.run.checkpoint import CHECKPOINT_DIR, newest_readable, no_readable_checkpoint
 from torchrl_esrl.run.config import ADDED, check_output_dir, validate_config
 
@@ -68,12 +69,12 @@ def _article(name: str) -> str:
     return "an" if name[:1].lower() in "aeiou" else "a"
 
 
-def _check_identity(field: str, run_dir: Path, algorithm: str, env_id: str, metadata: dict | None, summary: dict | None) -> None:
-    """The directory's run is ``algorithm`` on ``env_id``, where it says (summary or checkpoint)."""
+def _check_identity(field: str, run_dir: Path, algorithm: str | None, env_id: str, metadata: dict | None, summary: dict | None) -> None:
+    """The directory's run is ``algorithm`` (None: any) on ``env_id``, where it says (summary or checkpoint)."""
     held_algorithm = (summary or {}).get("algorithm") or (metadata or {}).get("algorithm")
     held_env = (summary or {}).get("env") or ((metadata or {}).get("config") or {}).get("env", {}).get("id")
     held_env = resolve_env_id(held_env) if held_env else None
-    if (held_algorithm and held_algorithm != algorithm) or (held_env and held_env != env_id):
+    if (held_algorithm and algorithm and held_algorithm != algorithm) or (held_env and held_env != env_id):
         held = f"{_article(held_algorithm)} {held_algorithm} run" if held_algorithm else "a run"
         raise ConfigError(
             f"{field}: {run_dir} holds {held} on {held_env or 'an unknown env'}; asked: {algorithm} on {env_id} "
@@ -107,12 +108,24 @@ def in_todays_names(saved: dict) -> dict:
     return saved
 
 
-def prepare_run(cfg: DictConfig, hydra_run_dir, algorithm: str | Callable[[DictConfig], str] | None = None) -> tuple[DictConfig, Path]:
+def algorithm_of(algorithm: AlgorithmInfo | Callable[[DictConfig], AlgorithmInfo], cfg: DictConfig) -> AlgorithmInfo:
+    """The :class:`AlgorithmInfo` a recipe runs with ``cfg`` (a recipe with variants passes a function)."""
+    return algorithm(cfg) if callable(algorithm) else algorithm
+
+
+def prepare_run(
+    cfg: DictConfig,
+    hydra_run_dir,
+    algorithm: AlgorithmInfo | Callable[[DictConfig], AlgorithmInfo] | None = None,
+    holdings: Callable[[DictConfig, EnvSizes], list[Holding]] | None = None,
+) -> tuple[DictConfig, Path]:
     """Every check before any work. Returns ``(config, run_dir)``; raises :class:`ConfigError`
     with a one-line message, or :class:`Finished` if the run directory's run has finished.
 
-    ``algorithm`` is the recipe's name for what it runs (a function of the config, as given to
-    ``recipe_main``; by default the ES-TD3 config's, or CEM-RL's). ``resume=<dir>`` continues
+    ``algorithm`` and ``holdings`` are the recipe's, as given to ``recipe_main``: what it runs
+    (the run directory must hold a run of it, if any) and what it will hold (checked against
+    this machine's memory and disk; :mod:`~torchrl_esrl.run.capacity`); without them, neither
+    is checked. ``resume=<dir>`` continues
     ``<dir>`` with the config saved in its checkpoint (``logger`` and ``checkpoint`` settings
     from the command line).
     """
@@ -138,7 +151,7 @@ def prepare_run(cfg: DictConfig, hydra_run_dir, algorithm: str | Callable[[DictC
                 saved[key] = current[key]
         cfg = OmegaConf.create(saved)
     validate_config(cfg)
-    name = (algorithm(cfg) if callable(algorithm) else algorithm) or default_algorithm(cfg)
+    name = algorithm_of(algorithm, cfg).name if algorithm is not None else None
     sizes = env_sizes(EnvSpec.from_config(cfg.env))  # refuses tasks (keywords, wrappers, transforms) the algorithms cannot take
     _check_identity(field, run_dir, name, resolve_env_id(cfg.env.id), metadata, summary)
     if saved is not None and not resume:
@@ -155,6 +168,7 @@ def prepare_run(cfg: DictConfig, hydra_run_dir, algorithm: str | Callable[[DictC
         raise ConfigError(f"{field}: {no_readable_checkpoint(run_dir, damaged)}")
     if readable is None and (run_dir / "metrics.csv").exists():
         raise ConfigError(f"{field}: {run_dir} holds metrics.csv but no checkpoint to continue it from; nothing was changed (allowed: {NEW_RUN})")
-    check_capacity(cfg, estimate(cfg, name, sizes), run_dir)
+    if holdings is not None:
+        check_capacity(cfg, estimate(holdings(cfg, sizes)), run_dir)
     check_output_dir(run_dir)
     return cfg, run_dir
