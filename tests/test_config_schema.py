@@ -71,7 +71,8 @@ def _leaves(node, prefix=""):
             yield f"{prefix}{key}", value
 
 
-SCHEMAS = {"config": "ESTD3Config", "es": "ESTD3Config", "td3": "TD3AloneConfig", "cem_rl": "CEMRLConfig"}
+SCHEMAS = {"config": "ESTD3Config", "es": "ESTD3Config", "td3": "TD3AloneConfig", "cem_rl": "CEMRLConfig"}  # recipe config -> its schema
+SCHEMA_NODES = {"config": "es_td3_schema", "es": "es_td3_schema", "td3": "td3_schema", "cem_rl": "cem_rl_schema"}
 
 
 def test_yaml_files_hold_only_what_differs_from_the_schema_defaults():
@@ -86,7 +87,7 @@ def test_yaml_files_hold_only_what_differs_from_the_schema_defaults():
             assert key in defaults, f"{path.name}: {key} is not a schema key"
             assert value != defaults[key], f"{path.name}: {key}: {value!r} is the schema's default (torchrl_esrl/run/schema.py); write it once"
     for config, name in SCHEMAS.items():  # each recipe's top config composes its own schema first
-        assert OmegaConf.load(CONF / f"{config}.yaml").defaults[0] == schema.SCHEMA_NAMES.get(config, "es_td3_schema") or config == "es"
+        assert OmegaConf.load(CONF / f"{config}.yaml").defaults[0] == SCHEMA_NODES[config]
         assert OmegaConf.get_type(composed(config)).__name__ == name
 
 
