@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# One run at the paper's budget (conf/config.yaml: Section 4 and its table), run to the end across
+# One run at the paper's budget (the schema's defaults, torchrl_esrl/run/schema.py: Section 4 and its table), run to the end across
 # sessions. By default the README's main command,
 #
 #     python recipes/es_td3.py env=walker2d seed=0

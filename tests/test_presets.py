@@ -1,4 +1,4 @@
-"""experiment=miniature: the paper's schedule (conf/config.yaml, experiment=paper) scaled by one factor,
+"""experiment=miniature: the paper's schedule (the schema's defaults, experiment=paper) scaled by one factor,
 checked by composing both with Hydra for every recipe and task of the set."""
 from pathlib import Path
 

@@ -4,7 +4,7 @@ Fujimoto's TD3 acts uniformly at random in the action box for its first 25,000 s
 the actor plus Gaussian exploration noise. :class:`RandomWarmup` is that switch as a TorchRL
 policy module: it sits where the exploration policy sits (``td3.exploration_policy``), so any
 collector that calls a policy per step uses it unchanged. ``td3.random_frames`` sets the length
-(``conf/td3.yaml``: 25,000 for the TD3 baseline; ``conf/config.yaml``: 0 for ES-TD3Buffers,
+(``torchrl_esrl/run/schema.py``: K, 25,000 at the paper's K, for the TD3 baseline; 0 for ES-TD3Buffers,
 whose Algorithm 1 acts with the noisy actor from the first step; docs/deviations.md).
 """
 from __future__ import annotations

@@ -2,41 +2,58 @@
 
 Each failure is a :class:`~torchrl_esrl.errors.ConfigError` with one line,
 ``<field>: <value> ... (allowed: ...)``. Types and unknown keys are the typed schema's job
-(:mod:`torchrl_esrl.run.schema`); this module checks values: ranges, choices, that the device
-exists, that the logger's package is installed, and that the run directory can be written.
+(:mod:`torchrl_esrl.run.schema`), and so is each key's own check: :func:`validate_config` walks
+the schema's fields and runs the check each one carries (a range, a choice, a function), then the
+checks that relate fields to each other, listed here. The renamed keys (:data:`RENAMED`) and the
+keys added since runs were first checkpointed (:data:`ADDED`) are read from the schema too.
 """
 from __future__ import annotations
 
+import dataclasses
 import importlib.util
 import math
 import os
-from collections.abc import Mapping
+import typing
+from collections.abc import Iterator, Mapping
 from pathlib import Path
 
+from hydra.utils import get_object
+from omegaconf import DictConfig, OmegaConf
+
 from torchrl_esrl.errors import ConfigError
-
-# Choices of the enumerated keys (where the component owning a name list has one, it is used instead).
-LOSS_FUNCTIONS = ("l2", "l1", "smooth_l1")  # torchrl.objectives.utils.distance_loss
-FITNESS_SHAPINGS = ("centered_ranks", "none")  # torchrl_esrl.es.openes.OpenES
-BUFFER_MODES = ("multi", "shared")
-SCHEDULES = ("sequential", "async")
-OVERWRITE_MODES = ("hard", "soft")
-# logger.backend -> the package its TorchRL logger needs ("" = no logger, csv = no extra package)
-LOGGER_PACKAGES = {"": None, "csv": None, "tensorboard": "tensorboard", "wandb": "wandb", "mlflow": "mlflow", "trackio": "trackio"}
-SEED_LIMIT = 2**31 - 2000  # numpy seeds are < 2**32; the recipes add up to 1000 for their streams
+from torchrl_esrl.run.schema import ESTD3Config, Renamed
 
 
-# Keys that were renamed: old name -> what to write instead (the schema keeps the old name, unset, so
-# that a config using it reaches this check instead of Hydra's unknown-key error).
-RENAMED = {
-    "td3.fast": "implementation (implementation=fast, or implementation=reference for td3.fast=false)",
-    "mode": "es.schedule (es.schedule=sequential or es.schedule=async)",
-}
+def section_of(annotation):
+    """The dataclass of a section's annotation (``Optional[CEMConfig]`` -> ``CEMConfig``), else None."""
+    for candidate in (annotation, *typing.get_args(annotation)):
+        if dataclasses.is_dataclass(candidate):
+            return candidate
+    return None
 
 
+def schema_fields(schema=ESTD3Config, prefix: str = "") -> Iterator[tuple[str, dataclasses.Field, object]]:
+    """``(key, field, annotation)`` of every key of ``schema``, sections first-class: a section is
+    yielded, then its keys."""
+    hints = typing.get_type_hints(schema)
+    for item in dataclasses.fields(schema):
+        key = f"{prefix}{item.name}"
+        yield key, item, hints[item.name]
+        section = section_of(hints[item.name])
+        if section is not None:
+            yield from schema_fields(section, f"{key}.")
+
+
+def _default(item: dataclasses.Field):
+    return item.default_factory() if item.default_factory is not dataclasses.MISSING else item.default
+
+
+# Keys that were renamed: old name -> what replaced it (the schema keeps the old name, unset, so that a
+# config using it reaches this check instead of Hydra's unknown-key error).
+RENAMED: dict[str, Renamed] = {key: item.metadata["renamed"] for key, item, _ in schema_fields() if "renamed" in item.metadata}
 # Keys added to the schema since runs were first checkpointed: key -> the value a config saved before
 # it existed had in effect, so that such a run resumes under today's config.
-ADDED = {"env.kwargs": {}, "env.wrappers": [], "env.transforms": []}
+ADDED: dict[str, object] = {key: _default(item) for key, item, _ in schema_fields() if item.metadata.get("added")}
 
 
 def _get_or_none(cfg, field: str):
@@ -57,9 +74,8 @@ def _is_number(value) -> bool:
     return not isinstance(value, bool) and isinstance(value, (int, float)) and math.isfinite(value)
 
 
-def _number(cfg, field: str, low=None, high=None, low_open=False, high_open=False, integer=False) -> None:
-    """``field`` is a finite number (an integer if ``integer``) within the given bounds."""
-    value = _get(cfg, field)
+def _number(field: str, value, low=None, high=None, low_open=False, high_open=False, integer=False) -> None:
+    """``value`` is a finite number (an integer if ``integer``) within the given bounds."""
     ok = _is_number(value) and (not integer or float(value).is_integer())
     if ok and low is not None:
         ok = value > low if low_open else value >= low
@@ -76,20 +92,62 @@ def _number(cfg, field: str, low=None, high=None, low_open=False, high_open=Fals
         raise ConfigError(f"{field}: {value!r} is invalid (allowed: {allowed})")
 
 
-def _positive(cfg, field: str, integer: bool = False) -> None:
-    _number(cfg, field, low=0, low_open=True, integer=integer)
-
-
-def _choice(cfg, field: str, options) -> None:
-    value = _get(cfg, field)
+def _choice(field: str, value, options=(), among=None, packages=None) -> None:
+    if among is not None:
+        named = get_object(among)
+        named = named() if callable(named) else named
+        options = [*options, *(sorted(named) if isinstance(named, Mapping) else named)]
     if value not in options:
         raise ConfigError(f"{field}: {value!r} is invalid (allowed: {', '.join(repr(o) if o == '' else str(o) for o in options)})")
+    if (packages or {}).get(value):
+        _package(field, value, packages[value])
 
 
-def _layers(cfg, field: str) -> None:
-    value = list(_get(cfg, field))
+def _layers(field: str, value) -> None:
+    value = list(value)
     if not value or not all(_is_number(v) and float(v).is_integer() and v > 0 for v in value):
         raise ConfigError(f"{field}: {value!r} is invalid (allowed: a non-empty list of positive integers, e.g. [256, 256])")
+
+
+def _name(field: str, value) -> None:
+    if not str(value).strip():
+        raise ConfigError(f"{field}: {value!r} is invalid (allowed: a non-empty name)")
+
+
+def _host_port(field: str, value) -> None:
+    if value != "auto" and not _is_host_port(value):
+        raise ConfigError(f"{field}: {value!r} is invalid (allowed: null to start Ray here, auto, or host:port)")
+
+
+def _mapping(field: str, value) -> None:
+    if not isinstance(value, Mapping):
+        raise ConfigError(f"{field}: {value!r} is invalid (allowed: a mapping of keyword arguments, e.g. {{}})")
+
+
+def _call(field: str, value, function: str) -> None:
+    get_object(function)(value)
+
+
+CHECKS = {"number": _number, "choice": _choice, "layers": _layers, "name": _name, "host_port": _host_port, "mapping": _mapping, "call": _call}
+
+
+def check_fields(cfg, schema=None, prefix: str = "") -> None:
+    """Each key's own check, as its schema field carries it (:mod:`torchrl_esrl.run.schema`), in the
+    schema's order. ``schema``: the config's own (an untyped config, a resumed run's, is read as
+    :class:`ESTD3Config`). A section or an Optional key that is null is not checked."""
+    if schema is None:
+        schema = OmegaConf.get_type(cfg) if dataclasses.is_dataclass(OmegaConf.get_type(cfg)) else ESTD3Config
+    hints = typing.get_type_hints(schema)
+    for item in dataclasses.fields(schema):
+        key, value = f"{prefix}{item.name}", cfg[item.name]
+        if value is None and type(None) in typing.get_args(hints[item.name]):  # an Optional key, unset
+            continue
+        section = section_of(hints[item.name])
+        if section is not None:
+            check_fields(value, section, f"{key}.")
+        elif "check" in item.metadata:
+            check = dict(item.metadata["check"])
+            CHECKS[check.pop("kind")](key, value, **check)
 
 
 def check_known_keys(cfg, path: str = "") -> None:
@@ -97,10 +155,6 @@ def check_known_keys(cfg, path: str = "") -> None:
     refuses ``key=value`` for a key the schema lacks, but ``+key=value`` and ``++key=value``
     add it, and nothing would read it. Mappings typed ``Dict[str, Any]`` or ``Any`` in the schema
     (``env.kwargs``, ``ray.worker_kwargs``) are open."""
-    import dataclasses
-
-    from omegaconf import DictConfig, OmegaConf
-
     schema = OmegaConf.get_type(cfg)
     if not dataclasses.is_dataclass(schema):
         return
@@ -119,106 +173,32 @@ def check_known_keys(cfg, path: str = "") -> None:
 
 
 def validate_config(cfg) -> None:
-    """Value checks of every key of ``conf/config.yaml`` (and ``conf/cem_rl.yaml``'s ``cem``)."""
+    """Every key's check (:func:`check_fields`), then the checks across keys."""
     check_known_keys(cfg)
-    from torchrl_esrl.collectors.backends import LOCAL_BACKENDS, available_backends
-    from torchrl_esrl.data.multibuffer import validate_ratio
-    from torchrl_esrl.envs import resolve_env_id
-    from torchrl_esrl.modules.networks import ACTIVATIONS
-    from torchrl_esrl.run.factories import IMPLEMENTATIONS
-
     for old, new in RENAMED.items():
         if _get_or_none(cfg, old) is not None:
-            raise ConfigError(f"{old}: renamed to {new}")
-    _number(cfg, "seed", low=0, high=SEED_LIMIT, integer=True)
-    _choice(cfg, "implementation", IMPLEMENTATIONS)
-    if not str(cfg.experiment_name).strip():
-        raise ConfigError("experiment_name: '' is invalid (allowed: a non-empty name)")
-    validate_device(cfg.device)
-    resolve_env_id(cfg.env.id)
-    if cfg.env.max_episode_steps is not None:
-        _positive(cfg, "env.max_episode_steps", integer=True)
-    for field in ("iterations", "td3.frames_per_iteration", "td3.frames_per_batch", "td3.policy_delay", "eval.episodes", "eval.final_episodes", "overwrite.window"):
-        _positive(cfg, field, integer=True)
+            raise ConfigError(f"{old}: renamed to {new.to} ({new.how})")
+    check_fields(cfg)
 
-    # TD3 (Fujimoto et al. 2018; TorchRL's TD3Loss and SoftUpdate)
-    for field in ("td3.lr", "td3.updates_per_frame"):
-        _positive(cfg, field)
-    _number(cfg, "td3.gamma", low=0, high=1)
-    _number(cfg, "td3.tau", low=0, high=1, low_open=True)
-    for field in ("td3.policy_noise", "td3.noise_clip", "td3.exploration_noise"):
-        _number(cfg, field, low=0)
-    _choice(cfg, "td3.loss_function", LOSS_FUNCTIONS)
-    if cfg.td3.num_threads is not None:  # null: the job's share of the cores (torchrl_esrl/threads.py)
-        _number(cfg, "td3.num_threads", low=1, integer=True)
-    _layers(cfg, "td3.critic_hidden")
-    _choice(cfg, "td3.critic_activation", sorted(ACTIVATIONS))
-    _layers(cfg, "actor.hidden")
-    _choice(cfg, "actor.activation", sorted(ACTIVATIONS))
-    if cfg.td3.frames_per_iteration % cfg.td3.frames_per_batch:
-        raise ConfigError(f"td3.frames_per_batch: {cfg.td3.frames_per_batch} does not divide td3.frames_per_iteration={cfg.td3.frames_per_iteration} (allowed: a divisor)")
-
-    # OpenAI-ES
-    for field in ("es.generations_per_iteration", "es.population_size"):
-        _positive(cfg, field, integer=True)
-    for field in ("es.sigma", "es.lr"):
-        _positive(cfg, field)
-    _number(cfg, "es.weight_decay", low=0)
-    _choice(cfg, "es.fitness_shaping", FITNESS_SHAPINGS)
-    _choice(cfg, "es.backend", available_backends())
-    if cfg.es.backend == "mujoco_batch":
+    td3, es, buffer = cfg.td3, cfg.es, cfg.buffer
+    if td3.frames_per_iteration % td3.frames_per_batch:
+        raise ConfigError(f"td3.frames_per_batch: {td3.frames_per_batch} does not divide td3.frames_per_iteration={td3.frames_per_iteration} (allowed: a divisor)")
+    if es.backend == "mujoco_batch":
         from torchrl_esrl.collectors.mujoco_batch import MujocoBatchBackend
         from torchrl_esrl.envs import EnvSpec
 
         reason = MujocoBatchBackend.refusal(EnvSpec.from_config(cfg.env))
         if reason is not None:
             raise ConfigError(f"es.backend: mujoco_batch cannot play this env exactly as gymnasium would ({reason}) (allowed: auto, gym)")
-    if cfg.es.antithetic and cfg.es.population_size % 2:
-        raise ConfigError(f"es.population_size: {cfg.es.population_size} is invalid with es.antithetic=true (allowed: an even positive integer)")
-    if cfg.es.backend == "ray":
-        _package("es.backend", "ray", "ray")
-    _positive(cfg, "ray.num_workers", integer=True)
-    _positive(cfg, "ray.num_cpus_per_worker")
-    _choice(cfg, "ray.worker_backend", ["auto", *LOCAL_BACKENDS])
-    address = cfg.ray.address
-    if address is not None and address != "auto" and not _is_host_port(address):
-        raise ConfigError(f"ray.address: {address!r} is invalid (allowed: null to start Ray here, auto, or host:port)")
-    if not isinstance(cfg.ray.worker_kwargs, Mapping):
-        raise ConfigError(f"ray.worker_kwargs: {cfg.ray.worker_kwargs!r} is invalid (allowed: a mapping of keyword arguments, e.g. {{}})")
-
-    # MultiBuffer (Section 3.1), threshold, overwrite rule (Section 3.2)
-    validate_ratio(cfg.buffer.ratio)
-    for field in ("buffer.capacity", "buffer.batch_size", "buffer.min_size"):
-        _positive(cfg, field, integer=True)
-    if cfg.buffer.capacity < cfg.buffer.batch_size:
-        raise ConfigError(f"buffer.capacity: {cfg.buffer.capacity} is smaller than buffer.batch_size={cfg.buffer.batch_size} (allowed: >= batch_size)")
-    if cfg.buffer.min_size < cfg.buffer.batch_size:
-        raise ConfigError(f"buffer.min_size: {cfg.buffer.min_size} is smaller than buffer.batch_size={cfg.buffer.batch_size} (allowed: K >= batch_size)")
-    if cfg.buffer.min_size > cfg.buffer.capacity:
-        raise ConfigError(f"buffer.min_size: {cfg.buffer.min_size} is larger than buffer.capacity={cfg.buffer.capacity} (allowed: K <= capacity, else TD3 never starts)")
-    _choice(cfg, "buffer.mode", BUFFER_MODES)
-    _number(cfg, "threshold.fraction", low=0, high=1)
-    _choice(cfg, "es.schedule", SCHEDULES)
-    _choice(cfg, "overwrite.mode", OVERWRITE_MODES)
-    _number(cfg, "overwrite.mix", low=0, high=1, low_open=True)
-    _number(cfg, "td3.random_frames", low=0, integer=True)
-
-    # Run plumbing: logger, checkpoints
-    _choice(cfg, "logger.backend", list(LOGGER_PACKAGES))
-    if LOGGER_PACKAGES[cfg.logger.backend]:
-        _package("logger.backend", cfg.logger.backend, LOGGER_PACKAGES[cfg.logger.backend])
-    _number(cfg, "checkpoint.every_frames", low=0, integer=True)
-    _positive(cfg, "checkpoint.keep_last", integer=True)
-
-    if cfg.get("cem") is not None:  # CEM-RL baseline (conf/cem_rl.yaml)
-        _number(cfg, "cem.population_size", low=2, integer=True)
-        _number(cfg, "cem.rl_fraction", low=0, high=1)
-        _number(cfg, "cem.elite_fraction", low=0, high=1, low_open=True)
-        _positive(cfg, "cem.sigma_init")
-        for field in ("cem.damping_init", "cem.damping_end"):
-            _number(cfg, field, low=0)
-        _number(cfg, "cem.damping_tau", low=0, high=1)
-        _number(cfg, "cem.start_frames", low=0, integer=True)
+    if es.antithetic and es.population_size % 2:
+        raise ConfigError(f"es.population_size: {es.population_size} is invalid with es.antithetic=true (allowed: an even positive integer)")
+    # MultiBuffer (Section 3.1): K and the capacity against the batch size
+    if buffer.capacity < buffer.batch_size:
+        raise ConfigError(f"buffer.capacity: {buffer.capacity} is smaller than buffer.batch_size={buffer.batch_size} (allowed: >= batch_size)")
+    if buffer.min_size < buffer.batch_size:
+        raise ConfigError(f"buffer.min_size: {buffer.min_size} is smaller than buffer.batch_size={buffer.batch_size} (allowed: K >= batch_size)")
+    if buffer.min_size > buffer.capacity:
+        raise ConfigError(f"buffer.min_size: {buffer.min_size} is larger than buffer.capacity={buffer.capacity} (allowed: K <= capacity, else TD3 never starts)")
 
 
 def _is_host_port(address) -> bool:

@@ -1,4 +1,4 @@
-"""Small factories that turn the Hydra config (``conf/config.yaml``) into components.
+"""Small factories that turn the Hydra config (``torchrl_esrl/run/schema.py``) into components.
 
 Each one builds one thing of the paper from its section of the config, in the style of
 TorchRL's ``sota-implementations``; recipes stay a readable transcription of Algorithm 1.
@@ -163,7 +163,7 @@ def make_es(cfg: DictConfig, actor) -> OpenES:
 
 
 def make_cem(cfg: DictConfig, actor):
-    """CEM-RL's diagonal CEM (baseline, ``conf/cem_rl.yaml``) centred on the actor's parameters."""
+    """CEM-RL's diagonal CEM (baseline, the ``cem`` section) centred on the actor's parameters."""
     c = cfg.cem
     return DiagonalCEM(
         flat_parameters(actor).cpu(),

@@ -10,6 +10,7 @@ directory that holds one (:func:`fresh_run_dir`).
 """
 from __future__ import annotations
 
+import copy
 import json
 from collections.abc import Callable
 from pathlib import Path
@@ -22,7 +23,7 @@ from torchrl_esrl.errors import ConfigError
 from torchrl_esrl.run.algorithm_info import AlgorithmInfo
 from torchrl_esrl.run.capacity import Holding, check_capacity, estimate
 from torchrl_esrl.run.checkpoint import CHECKPOINT_DIR, newest_readable, no_readable_checkpoint
-from torchrl_esrl.run.config import ADDED, check_output_dir, validate_config
+from torchrl_esrl.run.config import ADDED, RENAMED, check_output_dir, validate_config
 
 IGNORED_ON_RESUME = ("resume", "fresh", "logger", "checkpoint", "hydra")  # may change between a run and its resume
 SUMMARY = "summary.json"
@@ -91,20 +92,33 @@ def finished_line(run_dir: Path, summary: dict) -> str:
     )
 
 
+def _node(config: dict, key: str, create: bool = False) -> tuple[dict | None, str]:
+    """The mapping holding dotted ``key`` in ``config`` (made where ``create``; None where there is none), and the key's last part."""
+    *parents, name = key.split(".")
+    for part in parents:
+        if not isinstance(config.get(part), dict):
+            if not create:
+                return None, name
+            config[part] = {}
+        config = config[part]
+    return config, name
+
+
 def in_todays_names(saved: dict) -> dict:
-    """A checkpoint's config in today's key names (``run/config.py``'s ``RENAMED`` and ``ADDED``),
-    so that a run started before a rename or an added key resumes: ``td3.fast: true|false`` is
-    ``implementation: fast|reference``, the top-level ``mode`` is ``es.schedule``, a missing
-    ``env.kwargs`` is ``{}``."""
-    fast = saved.get("td3", {}).get("fast")
-    if fast is not None:
-        saved = {**saved, "implementation": "fast" if fast else "reference", "td3": {**saved["td3"], "fast": None}}
-    if saved.get("mode") is not None:
-        saved = {**saved, "mode": None, "es": {**saved.get("es", {}), "schedule": saved["mode"]}}
+    """A checkpoint's config in today's key names (the schema's renamed and added keys, ``run/config.py``'s
+    ``RENAMED`` and ``ADDED``), so that a run started before a rename or an added key resumes:
+    ``td3.fast: true|false`` is ``implementation: fast|reference``, the top-level ``mode`` is
+    ``es.schedule``, a missing ``env.kwargs`` is ``{}``."""
+    saved = copy.deepcopy(saved)
+    for old, new in RENAMED.items():
+        section, name = _node(saved, old)
+        if section is not None and section.get(name) is not None:
+            target, to_name = _node(saved, new.to, create=True)
+            target[to_name], section[name] = new.convert(section[name]), None
     for key, value in ADDED.items():  # keys a config saved before they existed had at these values
-        section, _, name = key.partition(".")
-        if section in saved and name not in saved[section]:
-            saved = {**saved, section: {**saved[section], name: value}}
+        section, name = _node(saved, key)
+        if section is not None and name not in section:
+            section[name] = copy.deepcopy(value)
     return saved
 
 

@@ -1,151 +1,244 @@
-"""Typed schema of ``conf/config.yaml`` (Hydra structured config): types only, the values live in the YAML.
+"""Every config key of the recipes, written once: its type, its default and its value check
+(Hydra structured configs).
 
-The dataclasses give every key of the config a type; ``conf/config.yaml`` lists the schema
-first in its defaults, so Hydra rejects unknown keys and values of the wrong type while
-composing, before anything runs. Values themselves live in the YAML files (``???`` here).
-A key added to the YAML must be added here too.
+The defaults are the paper's hyper-parameters (Table 2, Sections 4.2-4.3); every departure is in
+docs/deviations.md. Each recipe's top config (``conf/config.yaml``, ``td3.yaml``, ``es.yaml``,
+``cem_rl.yaml``) lists its schema first, so Hydra rejects unknown keys and wrong types while
+composing; the YAML files hold only what differs: the env, the experiment presets, Hydra's settings.
+A field's check (``metadata["check"]``, made by :func:`number`, :func:`one_of`...) is run by
+:func:`torchrl_esrl.run.config.validate_config`; checks across fields live there.
+
+To add a key: add its field here, with its default and check. If runs checkpointed before it
+existed must resume, make it :func:`added` (their configs get the default); a key that changes
+name keeps its old one as :func:`renamed`.
 """
 from __future__ import annotations
 
+import copy
 from dataclasses import dataclass, field
-from typing import Any, Dict, List, Optional
+from typing import Any, Callable, Dict, List, Optional
 
 from hydra.core.config_store import ConfigStore
 from omegaconf import MISSING
 
-SCHEMA_NAME = "es_td3_schema"
+SCHEMA_NAMES = {"es_td3": "es_td3_schema", "td3": "td3_schema", "cem_rl": "cem_rl_schema"}  # OpenAI-ES alone uses es_td3's
+SEED_LIMIT = 2**31 - 2000  # numpy seeds are < 2**32; the recipes add up to 1000 for their streams
+# logger.backend -> the package its TorchRL logger needs ("" = no logger, csv = no extra package)
+LOGGER_PACKAGES = {"": None, "csv": None, "tensorboard": "tensorboard", "wandb": "wandb", "mlflow": "mlflow", "trackio": "trackio"}
+
+
+def _field(default, check: dict | None = None, **metadata):
+    metadata = {**metadata, **({"check": check} if check else {})}
+    if isinstance(default, (list, dict)):
+        return field(default_factory=lambda: copy.deepcopy(default), metadata=metadata)
+    return field(default=default, metadata=metadata)
+
+
+def number(default, low=None, high=None, *, low_open: bool = False, high_open: bool = False, integer: bool = False):
+    """A finite number (an integer if ``integer``) in the given bounds; ``None`` passes where the type is Optional."""
+    return _field(default, {"kind": "number", "low": low, "high": high, "low_open": low_open, "high_open": high_open, "integer": integer})
+
+
+def positive(default, integer: bool = False):
+    return number(default, low=0, low_open=True, integer=integer)
+
+
+def count(default):
+    """An integer >= 1 (iterations, frames, episodes, sizes)."""
+    return positive(default, integer=True)
+
+
+def one_of(default, options: tuple = (), among: str | None = None, packages: dict | None = None):
+    """One of ``options``, then of ``among`` (the dotted name of the list, mapping or function of
+    the component that owns the names, read when checked); ``packages``: value -> package it needs."""
+    return _field(default, {"kind": "choice", "options": options, "among": among, "packages": packages or {}})
+
+
+def layers(default):
+    """Hidden layer widths: a non-empty list of positive integers."""
+    return _field(default, {"kind": "layers"})
+
+
+def checked_by(default, function: str):
+    """Checked by ``function`` (a dotted name) of the value; it raises the one-line ConfigError."""
+    return _field(default, {"kind": "call", "function": function})
+
+
+def checked(default, kind: str):
+    """Checked by ``run/config.py``'s check of that kind: ``name`` (non-empty), ``host_port``, ``mapping``."""
+    return _field(default, {"kind": kind})
+
+
+def added(default):
+    """A key added since runs were first checkpointed: a saved config without it resumes with ``default``."""
+    return _field(default, added=True)
+
+
+@dataclass(frozen=True)
+class Renamed:
+    """What replaced a key: its new name, how to write it, and the new value of an old one (resume)."""
+
+    to: str
+    how: str
+    convert: Callable[[Any], Any] = lambda value: value
+
+
+def renamed(to: str, how: str, convert: Callable[[Any], Any] | None = None):
+    """An old key, kept unset so that a config using it gets ``renamed to <to> (<how>)`` instead of Hydra's unknown key."""
+    return _field(None, renamed=Renamed(to, how, *([convert] if convert else [])))
 
 
 @dataclass
 class EnvConfig:
-    """The task, as every part of the run plays it (torchrl_esrl/envs.py, EnvSpec)."""
+    """The task, as every part of the run plays it (torchrl_esrl/envs.py, EnvSpec); name and id from conf/env/."""
 
     name: str = MISSING
-    id: str = MISSING
-    max_episode_steps: Optional[int] = MISSING
-    kwargs: Dict[str, Any] = field(default_factory=dict)  # gymnasium.make keyword arguments, e.g. ++env.kwargs.terminate_when_unhealthy=false
-    wrappers: List[Any] = field(default_factory=list)  # gymnasium wrappers, in order: [{_target_: gymnasium.wrappers.ClipReward, min_reward: -1, max_reward: 1}]
-    transforms: List[Any] = field(default_factory=list)  # TorchRL transforms after DoubleToFloat: [{_target_: torchrl.envs.RewardScaling, loc: 0.0, scale: 0.1}]
+    id: str = checked_by(MISSING, "torchrl_esrl.envs.resolve_env_id")  # a gymnasium id or a short name; the closest known one is suggested
+    max_episode_steps: Optional[int] = positive(None, integer=True)  # null: the env's own limit (1000 for the MuJoCo locomotion tasks)
+    kwargs: Dict[str, Any] = added({})  # gymnasium.make keyword arguments, e.g. ++env.kwargs.terminate_when_unhealthy=false
+    wrappers: List[Any] = added([])  # gymnasium wrappers, in order: [{_target_: gymnasium.wrappers.ClipReward, min_reward: -1, max_reward: 1}]
+    transforms: List[Any] = added([])  # TorchRL transforms after DoubleToFloat: [{_target_: torchrl.envs.RewardScaling, loc: 0.0, scale: 0.1}]
 
 
 @dataclass
 class TD3Config:
-    frames_per_iteration: int = MISSING
-    frames_per_batch: int = MISSING
-    updates_per_frame: float = MISSING
-    lr: float = MISSING
-    gamma: float = MISSING
-    tau: float = MISSING
-    policy_noise: float = MISSING
-    noise_clip: float = MISSING
-    policy_delay: int = MISSING
-    exploration_noise: float = MISSING
-    loss_function: str = MISSING
-    critic_hidden: List[int] = MISSING
-    critic_activation: str = MISSING
-    fast: Optional[bool] = None  # renamed: the top-level `implementation` (config.py names it)
-    random_frames: int = MISSING
-    num_threads: Optional[int] = MISSING
+    """TD3 (Fujimoto et al. 2018; TorchRL's TD3Loss and SoftUpdate), Algorithm 1's TD3 phase."""
+
+    frames_per_iteration: int = count(100000)  # M
+    frames_per_batch: int = count(1)  # env frames collected between update bursts (1 = Algorithm 1)
+    updates_per_frame: float = positive(1.0)
+    lr: float = positive(3.0e-4)  # alpha_TD3
+    gamma: float = number(0.99, low=0, high=1)
+    tau: float = number(0.005, low=0, high=1, low_open=True)
+    policy_noise: float = number(0.2, low=0)
+    noise_clip: float = number(0.5, low=0)
+    policy_delay: int = count(2)
+    exploration_noise: float = number(0.1, low=0)  # epsilon ~ N(0, 0.1)
+    loss_function: str = one_of("l2", ("l2", "l1", "smooth_l1"))  # torchrl.objectives.utils.distance_loss
+    critic_hidden: List[int] = layers([256, 256])
+    critic_activation: str = one_of("relu", among="torchrl_esrl.modules.networks.ACTIVATIONS")
+    fast: Optional[bool] = renamed("implementation", "implementation=fast, or implementation=reference for td3.fast=false", lambda fast: "fast" if fast else "reference")
+    # uniform-random actions first (Fujimoto's start_timesteps); 0: Algorithm 1 acts with the noisy actor from the start
+    random_frames: int = number(0, low=0, integer=True)
+    # torch threads of the TD3 phase; null: this job's share of the cores, at most 2 (2 measured fastest on
+    # 2 cores, docs/performance.md; two joblib jobs on 2 cores: 1 each)
+    num_threads: Optional[int] = number(None, low=1, integer=True)
 
 
 @dataclass
 class ActorConfig:
-    hidden: List[int] = MISSING
-    activation: str = MISSING
+    hidden: List[int] = layers([256, 256])
+    activation: str = one_of("tanh", among="torchrl_esrl.modules.networks.ACTIVATIONS")
 
 
 @dataclass
 class ESConfig:
-    generations_per_iteration: int = MISSING
-    population_size: int = MISSING
-    antithetic: bool = MISSING
-    sigma: float = MISSING
-    lr: float = MISSING
-    weight_decay: float = MISSING
-    fitness_shaping: str = MISSING
-    schedule: str = MISSING
-    backend: str = MISSING
+    """OpenAI-ES (Salimans et al. 2017; torchrl_esrl/es/openes.py), Algorithm 1's ES phase."""
+
+    generations_per_iteration: int = count(50)  # g
+    population_size: int = count(120)  # 60 antithetic pairs
+    antithetic: bool = True
+    sigma: float = positive(0.005)
+    lr: float = positive(0.001)  # alpha_ES (Adam)
+    weight_decay: float = number(0.0, low=0)
+    fitness_shaping: str = one_of("centered_ranks", ("centered_ranks", "none"))  # torchrl_esrl.es.openes.OpenES
+    # sequential (Algorithm 1) | async: the iteration's ES generations run during the TD3 phase
+    schedule: str = one_of("sequential", ("sequential", "async"))
+    # auto | gym | mujoco_batch | ray (offspring on Ray workers, see `ray`)
+    backend: str = one_of("auto", among="torchrl_esrl.collectors.backends.available_backends", packages={"ray": "ray"})
 
 
 @dataclass
 class BufferConfig:
-    ratio: List[float] = MISSING
-    capacity: int = MISSING
-    batch_size: int = MISSING
-    min_size: int = MISSING
-    renormalize: bool = MISSING
-    mode: str = MISSING
+    """The MultiBuffer (Section 3.1)."""
+
+    ratio: List[float] = checked_by([0.5, 0.2, 0.3], "torchrl_esrl.data.multibuffer.validate_ratio")  # (a:b:c) = good : bad : noisy
+    capacity: int = count(1000000)  # per buffer
+    batch_size: int = count(256)
+    min_size: int = count(25000)  # K: every buffer with a non-zero share must hold K items
+    renormalize: bool = False  # sample from the ready buffers only, ratio renormalised
+    mode: str = one_of("multi", ("multi", "shared"))  # multi (good/bad/noisy) | shared (one buffer for ES and TD3, ERL-style ablation)
 
 
 @dataclass
 class ThresholdConfig:
-    fraction: float = MISSING
+    fraction: float = number(0.9, low=0, high=1)  # threshold = best - (1 - fraction) * |best| (Section 3.1)
 
 
 @dataclass
 class OverwriteConfig:
-    window: int = MISSING
-    reset_optimizer: bool = MISSING
-    mode: str = MISSING
-    mix: float = MISSING
+    """The overwrite rule (Section 3.2)."""
+
+    window: int = count(3)  # k: iterations averaged by the overwrite rule
+    reset_optimizer: bool = True  # clear ES Adam moments when the mean is overwritten
+    mode: str = one_of("hard", ("hard", "soft"))  # hard: mean <- TD3 actor (Algorithm 1) | soft: mean <- (1 - mix) mean + mix TD3 actor (Section 5)
+    mix: float = number(0.5, low=0, high=1, low_open=True)  # soft overwrite's mixing rate, in (0, 1]
 
 
 @dataclass
 class EvalConfig:
-    episodes: int = MISSING
-    final_episodes: int = MISSING
+    episodes: int = count(5)  # deterministic episodes per evaluation (overwrite rule, curves)
+    final_episodes: int = count(10)  # episodes of the final evaluation in summary.json
 
 
 @dataclass
 class LoggerConfig:
-    backend: str = MISSING
-    progress: bool = MISSING
-    print_config: bool = MISSING
+    # csv | tensorboard | wandb | mlflow | trackio | '' (none); its package must be installed
+    backend: str = one_of("csv", tuple(LOGGER_PACKAGES), packages={k: v for k, v in LOGGER_PACKAGES.items() if v})
+    progress: bool = True  # tqdm progress bar
+    print_config: bool = False  # print the resolved config at start (it is saved in <run dir>/.hydra/ anyway)
 
 
 @dataclass
 class CheckpointConfig:
-    every_frames: int = MISSING
-    keep_last: int = MISSING
+    """<run dir>/checkpoints; written at every iteration boundary."""
+
+    every_frames: int = number(0, low=0, integer=True)  # also every N TD3 frames (0: off)
+    keep_last: int = count(2)
 
 
 @dataclass
 class RayConfig:
-    """es.backend=ray (torchrl_esrl/collectors/ray_backend.py)."""
+    """es.backend=ray (torchrl_esrl/collectors/ray_backend.py; pip install -e ".[ray]")."""
 
-    address: Optional[str] = MISSING
-    num_workers: int = MISSING
-    worker_backend: str = MISSING
-    num_cpus_per_worker: float = MISSING
-    worker_kwargs: Any = MISSING
+    address: Optional[str] = checked(None, "host_port")  # null: start Ray on this machine; "auto" or "host:port": join a cluster
+    num_workers: int = count(2)  # Ray actors, each evaluating a contiguous share of every population
+    worker_backend: str = one_of("auto", ("auto",), among="torchrl_esrl.collectors.backends.LOCAL_BACKENDS")  # the local backend each actor runs
+    num_cpus_per_worker: float = positive(1.0)
+    worker_kwargs: Any = checked({}, "mapping")  # extra arguments of the worker backend
 
 
 @dataclass
 class CEMConfig:
-    """CEM-RL baseline (recipes/cem_rl.py, torchrl_esrl/es/cem.py); unused by ES-TD3Buffers."""
+    """CEM-RL (Pourchot and Sigaud 2019; recipes/cem_rl.py, torchrl_esrl/es/cem.py): values of the
+    authors' code (es_grad.py, ES.py sepCEM) where the CEM-RL paper's table is silent."""
 
-    population_size: int = MISSING
-    rl_fraction: float = MISSING
-    elite_fraction: float = MISSING
-    sigma_init: float = MISSING
-    damping_init: float = MISSING
-    damping_end: float = MISSING
-    damping_tau: float = MISSING
-    antithetic: bool = MISSING
-    start_frames: int = MISSING
+    population_size: int = number(10, low=2, integer=True)  # CEM-RL: 10 actors
+    rl_fraction: float = number(0.5, low=0, high=1)  # n_grad = 5 of 10: per member F/5 critic steps, then F actor steps
+    elite_fraction: float = number(0.5, low=0, high=1, low_open=True)  # parents = pop/2 update mean and variance
+    sigma_init: float = positive(1.0e-3)  # initial VARIANCE of every coordinate (reference sigma_init)
+    damping_init: float = number(1.0e-3, low=0)
+    damping_end: float = number(1.0e-5, low=0)
+    damping_tau: float = number(0.95, low=0, high=1)
+    antithetic: bool = True  # mirrored pairs for an even population, as the reference
+    start_frames: int = number(10000, low=0, integer=True)  # reference start_steps: no gradient steps before this many frames
 
 
 @dataclass
 class ESTD3Config:
-    """The whole config of ``recipes/es_td3.py``."""
+    """The config of ``recipes/es_td3.py`` (ES-TD3Buffers, Algorithm 1) and of ``recipes/es.py``
+    (OpenAI-ES alone), and every other recipe's shared keys. Sections a recipe does not read stay,
+    so that every run's saved config, and its resume, keeps the same keys."""
 
-    seed: int = MISSING
-    implementation: str = MISSING
-    device: str = MISSING
-    iterations: int = MISSING
-    experiment_name: str = MISSING
-    resume: Optional[str] = MISSING
-    fresh: bool = MISSING
+    seed: int = number(0, low=0, high=SEED_LIMIT, integer=True)
+    # fast | reference: reference is stock TorchRL end to end; fast swaps in pieces proven equal (docs/performance.md)
+    implementation: str = one_of("fast", among="torchrl_esrl.run.factories.IMPLEMENTATIONS")
+    device: str = checked_by("cpu", "torchrl_esrl.run.config.validate_device")
+    iterations: int = count(20)  # outer loop of Algorithm 1
+    experiment_name: str = checked("paper", "name")  # the experiment preset's name (conf/experiment/)
+    resume: Optional[str] = None  # a run directory: continue it from its last checkpoint
+    # true: a new run, in <hydra.run.dir>-2 (-3...) if hydra.run.dir already holds a run (a finished run is never rerun)
+    fresh: bool = False
     env: EnvConfig = field(default_factory=EnvConfig)
     td3: TD3Config = field(default_factory=TD3Config)
     actor: ActorConfig = field(default_factory=ActorConfig)
@@ -155,14 +248,39 @@ class ESTD3Config:
     overwrite: OverwriteConfig = field(default_factory=OverwriteConfig)
     eval: EvalConfig = field(default_factory=EvalConfig)
     logger: LoggerConfig = field(default_factory=LoggerConfig)
-    mode: Optional[str] = None  # renamed: es.schedule (config.py names it)
+    mode: Optional[str] = renamed("es.schedule", "es.schedule=sequential or es.schedule=async")
     ray: RayConfig = field(default_factory=RayConfig)
     checkpoint: CheckpointConfig = field(default_factory=CheckpointConfig)
-    cem: Optional[CEMConfig] = None  # only conf/cem_rl.yaml has this section
+    cem: Optional[CEMConfig] = None  # CEM-RL's section (CEMRLConfig)
+
+
+def _td3_alone() -> TD3Config:
+    # Fujimoto's TD3: uniform-random actions until learning starts (start_timesteps = 25,000). Learning
+    # starts when the buffer holds K = buffer.min_size items, so the warm-up is K frames: 25,000 with the
+    # paper preset, and scaled with K by the smaller presets (bench, multibuffer: 5,000; quick: 1,000).
+    return TD3Config(random_frames="${buffer.min_size}")
+
+
+@dataclass
+class TD3AloneConfig(ESTD3Config):
+    """The config of ``recipes/td3.py`` (TD3 alone): only the noisy buffer is used (buffer.ratio is ignored)."""
+
+    td3: TD3Config = field(default_factory=_td3_alone)
+
+
+@dataclass
+class CEMRLConfig(ESTD3Config):
+    """The config of ``recipes/cem_rl.py``: TD3 settings from ``td3``; one replay buffer of
+    buffer.capacity, learning once it holds buffer.min_size items; one iteration = generations
+    until td3.frames_per_iteration new frames entered the buffer."""
+
+    cem: CEMConfig = field(default_factory=CEMConfig)
 
 
 def register_schema() -> None:
-    ConfigStore.instance().store(name=SCHEMA_NAME, node=ESTD3Config)
+    store = ConfigStore.instance()
+    for recipe, node in (("es_td3", ESTD3Config), ("td3", TD3AloneConfig), ("cem_rl", CEMRLConfig)):
+        store.store(name=SCHEMA_NAMES[recipe], node=node)
 
 
 register_schema()
