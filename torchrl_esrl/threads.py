@@ -1,4 +1,4 @@
-"""Per-phase torch thread counts, and a job's share of the cores (docs/performance.md, "What bounds it").
+"""Per-phase torch thread counts, and a job's share of the cores (docs/performance.md, "The fast pieces").
 
 OpenMP's wait policy is fixed when torch loads (libgomp's default, spinning), but torch's intra-op
 thread count can change at any time. Each phase runs with the count that suits its work:
