@@ -12,7 +12,7 @@ method. Methods, interleaved in one run:
   torchrl_stock TD3() (the reference): TorchRL TD3Loss + SoftUpdate + default Adam
   torchrl_fast  TD3 with make_td3's fast pieces: ManualGradTD3Loss (stacked twin critics, Q1-only
                 actor loss, hand-written gradients beneath loss.backward()) + ForeachSoftUpdate + fused Adam, 1 thread
-  torchrl_fast_2threads  the same on 2 threads (the TD3 phase's ``td3.num_threads: 2``, as the
+  torchrl_fast_2threads  the same on 2 threads (the TD3 phase's ``td3.num_threads`` default on 2 cores, as the
                 recipes run it)
 
 Each method sets its thread count before every call. The process runs under libgomp's own

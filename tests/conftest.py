@@ -10,11 +10,31 @@ os.environ["RAY_USAGE_STATS_ENABLED"] = "0"
 
 import pytest  # noqa: E402
 import torch  # noqa: E402
+from tensordict import TensorDict  # noqa: E402
 
 torch.set_num_threads(max(1, min(2, os.cpu_count() or 1)))
 
 ROOT = Path(__file__).resolve().parents[1]
 TINY = "experiment=tiny"  # conf/experiment/tiny.yaml: the one budget of every test that runs a recipe
+
+
+def transitions(n, fill=0.0, obs_dim=3, act_dim=1):
+    """``n`` transitions with every key a MultiBuffer stores, valued ``fill``, plus one it drops."""
+    return TensorDict(
+        {
+            "observation": torch.full((n, obs_dim), fill),
+            "action": torch.zeros(n, act_dim),
+            "next": {
+                "observation": torch.full((n, obs_dim), fill),
+                "reward": torch.full((n, 1), fill),
+                "done": torch.zeros(n, 1, dtype=torch.bool),
+                "terminated": torch.zeros(n, 1, dtype=torch.bool),
+                "truncated": torch.zeros(n, 1, dtype=torch.bool),
+            },
+            "extra": torch.ones(n),  # dropped: not a transition key
+        },
+        batch_size=[n],
+    )
 
 
 @pytest.fixture(autouse=True)

@@ -7,7 +7,7 @@ import pytest
 from hydra import compose, initialize_config_dir
 from hydra.utils import get_class
 
-from torchrl_esrl.threads import TD3_THREADS, process_cores
+from torchrl_esrl.threads import process_cores
 
 ROOT = Path(__file__).resolve().parents[1]
 SMALL = ["iterations=1", "env=swimmer", "td3.frames_per_iteration=300"]
@@ -29,7 +29,7 @@ def test_joblib_launcher_runs_two_jobs_in_parallel(run_recipe, tmp_path):
     (start0, end0), (start1, end1) = job_interval(runs[0]), job_interval(runs[1])
     assert start0 < end1 and start1 < end0  # the two jobs overlapped in time
     share = max(1, process_cores() // 2)  # two jobs at once: each its half of the cores
-    assert [json.loads((p / "summary.json").read_text())["threads"] for p in runs] == [{"td3": min(TD3_THREADS, share), "es": share}] * 2
+    assert [json.loads((p / "summary.json").read_text())["threads"] for p in runs] == [{"td3": share, "es": share}] * 2
 
 
 @pytest.mark.e2e
@@ -44,7 +44,7 @@ def test_an_explicit_thread_count_wins_over_the_jobs_share(run_recipe, tmp_path)
 def test_a_single_run_takes_the_process_cores(run_recipe, tmp_path):
     result = run_recipe("es_td3.py", *SMALL, "iterations=1", f"hydra.run.dir={tmp_path}")
     assert result.returncode == 0, result.stderr[-3000:]
-    assert json.loads((tmp_path / "summary.json").read_text())["threads"] == {"td3": min(TD3_THREADS, process_cores()), "es": process_cores()}
+    assert json.loads((tmp_path / "summary.json").read_text())["threads"] == {"td3": process_cores(), "es": process_cores()}
 
 
 def test_slurm_launcher_config_composes_and_resolves():

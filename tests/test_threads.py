@@ -1,19 +1,40 @@
 """A job's share of the cores (torchrl_esrl/threads.py); the launcher cases run real sweeps in tests/test_launchers.py."""
+import os
+
+import pytest
 import torch
 
 from torchrl_esrl.threads import JOBS_VARIABLE, concurrent_jobs, job_cores, process_cores, torch_threads
 
 
-def test_a_single_process_takes_all_of_its_cores(monkeypatch):
+@pytest.mark.parametrize("cores", [1, 2, 8, 64])
+def test_a_single_job_takes_all_of_its_cores(monkeypatch, cores):
     monkeypatch.delenv(JOBS_VARIABLE, raising=False)
-    assert concurrent_jobs(process_cores()) == 1 and job_cores() == process_cores()
+    assert concurrent_jobs(cores) == 1 and job_cores(cores) == cores  # no cap: 64 cores, 64 threads
 
 
-def test_jobs_started_side_by_side_share_the_cores(monkeypatch):
+@pytest.mark.parametrize("cores, share", [(1, 1), (2, 1), (8, 4), (64, 32)])
+def test_two_jobs_side_by_side_take_half_each_and_never_zero(monkeypatch, cores, share):
     monkeypatch.setenv(JOBS_VARIABLE, "2")
-    assert job_cores() == max(1, process_cores() // 2)
-    monkeypatch.setenv(JOBS_VARIABLE, str(4 * process_cores()))  # more jobs than cores: one each, never zero
-    assert job_cores() == 1
+    assert job_cores(cores) == share
+
+
+def test_more_jobs_than_cores_get_one_core_each(monkeypatch):
+    monkeypatch.setenv(JOBS_VARIABLE, "64")
+    assert job_cores(8) == 1
+
+
+@pytest.mark.skipif(not hasattr(os, "sched_getaffinity"), reason="CPU affinity is Linux's")
+def test_the_default_is_the_process_affinity_not_the_machines_count(monkeypatch):
+    monkeypatch.delenv(JOBS_VARIABLE, raising=False)
+    allowed = os.sched_getaffinity(0)
+    one_core = {min(allowed)}
+    try:
+        os.sched_setaffinity(0, one_core)  # as `taskset -c 0` or a one-core Slurm allocation
+        assert process_cores() == 1 and job_cores() == 1
+    finally:
+        os.sched_setaffinity(0, allowed)
+    assert process_cores() == len(allowed) and job_cores() == len(allowed)
 
 
 def test_torch_threads_restores_the_callers_count():

@@ -1,4 +1,4 @@
-"""Per-phase torch thread counts, and a job's share of the cores (docs/performance.md, "What bounds it").
+"""Per-phase torch thread counts, and a job's share of the cores (docs/performance.md, "The fast pieces").
 
 OpenMP's wait policy is fixed when torch loads (libgomp's default, spinning), but torch's intra-op
 thread count can change at any time. Each phase runs with the count that suits its work:
@@ -11,9 +11,6 @@ import os
 from contextlib import contextmanager
 
 import torch
-
-TD3_THREADS = 2  # the TD3 update's count when the job has the cores: 2 measured fastest on the 2-core machine (docs/performance.md)
-
 
 @contextmanager
 def torch_threads(num_threads: int | None):
@@ -56,8 +53,10 @@ def concurrent_jobs(cores: int) -> int:
     return max(1, n_jobs if n_jobs > 0 else cores + 1 + n_jobs)
 
 
-def job_cores() -> int:
-    """This job's share of the cores: the process's cores divided among the jobs a launcher runs
-    at once beside it (two joblib jobs on 2 cores: one each), so parallel jobs never oversubscribe."""
-    cores = process_cores()
+def job_cores(cores: int | None = None) -> int:
+    """This job's share of ``cores`` (default: :func:`process_cores`), divided among the jobs a
+    launcher runs at once beside it (two joblib jobs on 2 cores: one each; on 64 cores: 32 each),
+    so parallel jobs never oversubscribe. It is the default of ``td3.num_threads`` and of the
+    ``mujoco_batch`` ES backend's threads."""
+    cores = process_cores() if cores is None else int(cores)
     return max(1, cores // concurrent_jobs(cores))

@@ -59,7 +59,7 @@ def td3_phase(
     restored from a checkpoint to finish a phase interrupted mid-way.
     """
     p = PhaseProgress() if progress is None else progress
-    with torch_threads(td3.num_threads):  # the TD3 update's best count (TD3's docstring)
+    with torch_threads(td3.num_threads):  # default: this job's share of the cores (torchrl_esrl/threads.py)
         is_multibuffer = hasattr(buffer, "ready")
         ready = False  # the phase only adds items: once ready, the buffer stays ready (checked once, not per frame)
         while p.collected < frames:

@@ -34,7 +34,7 @@ from torchrl_esrl.objectives.td3 import TD3, ForeachSoftUpdate, ManualGradTD3Los
 from torchrl_esrl.data.threshold import Threshold
 from torchrl_esrl.es.cem import DiagonalCEM
 from torchrl_esrl.run.capacity import Holding, bytes_per_transition, mlp_parameters, network_holding, population_holdings
-from torchrl_esrl.threads import TD3_THREADS, job_cores
+from torchrl_esrl.threads import job_cores
 
 IMPLEMENTATIONS = ("fast", "reference")
 # Each fast piece, and the reference it replaces (docs/performance.md has the table):
@@ -108,7 +108,7 @@ def make_td3(cfg: DictConfig, actor, critic, action_spec, pieces: Collection[str
         loss_class=ManualGradTD3Loss if "td3_loss" in fast else TD3Loss,  # it hands over to TD3Loss's autograd where it cannot compute exactly
         target_update_class=ForeachSoftUpdate if "soft_update" in fast else SoftUpdate,
         optimizer_impl="fused" if "adam" in fast else "default",
-        num_threads=c.num_threads if c.num_threads is not None else min(TD3_THREADS, job_cores()),
+        num_threads=c.num_threads if c.num_threads is not None else job_cores(),
     )
     if c.random_frames > 0:
         td3.exploration_policy = RandomWarmup(td3.exploration_policy, action_spec, c.random_frames, seed=int(cfg.seed) + 3)
