@@ -272,7 +272,7 @@ def implementations(cfg: DictConfig, **components) -> dict[str, str]:
     es_collector = components.get("es_collector")
     if isinstance(es_collector, ESCollector):
         population = es_collector.population_actor
-        piece("es_forward", isinstance(population, PopulationActor), "the actor is not Linear layers with tanh or ReLU between them, then TanhModule")
+        piece("es_forward", isinstance(population, PopulationActor), getattr(population, "actor", None) is not None and PopulationActor.refusal(population.actor) or None)
         backend = es_collector.backend
         name = getattr(backend, "worker_backend", backend.name)  # a Ray backend: what its workers run
         piece("es_physics", name == MujocoBatchBackend.name, MujocoBatchBackend.refusal(es_collector.env))
