@@ -58,7 +58,7 @@ def make_population(env_id: str, members: int, sigma: float = 0.005, seed: int =
     actor = make_actor(env.observation_space.shape[0], Bounded(low, high, shape=low.shape))
     es = OpenES(flat_parameters(actor), population_size=members, sigma=sigma, generator=torch.Generator().manual_seed(seed))
     params = es.ask().contiguous()
-    return actor, params, es.mirrored()
+    return actor, params, es.mirrored(params)
 
 
 def time_backend(backend, params, seeds, mirrored=None) -> dict:

@@ -128,7 +128,7 @@ class Setup:
         population = self.es.ask()
         self.start_cpu()
         start = time.perf_counter()
-        generation = self.es_collector.evaluate(population, mirrored=self.es.mirrored())  # the ES phase's call
+        generation = self.es_collector.evaluate(population, mirrored=self.es.mirrored(population))  # the ES phase's call
         self.record("es_evaluation", time.perf_counter() - start, 1)
         self.env_steps_per_generation = generation.frames
         self.start_cpu()
@@ -139,7 +139,7 @@ class Setup:
         self.record("es_buffer_writes", time.perf_counter() - start, 1)
         self.start_cpu()
         start = time.perf_counter()
-        self.es.tell(generation.returns)
+        self.es.tell(population, generation.returns)
         self.record("es_tell", time.perf_counter() - start, 1)
 
     def fill_to_ready(self) -> None:

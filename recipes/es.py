@@ -27,8 +27,9 @@ def train(cfg: DictConfig, run: Run) -> dict:
     for iteration in run.iterations("ES"):
         returns = []
         for _ in range(cfg.es.generations_per_iteration):
-            generation = es_collector.evaluate(es.ask(), mirrored=es.mirrored())
-            es.tell(generation.returns)
+            population = es.ask()
+            generation = es_collector.evaluate(population, mirrored=es.mirrored(population))
+            es.tell(population, generation.returns)
             returns.append(generation.returns)
         run.log(
             iteration,

@@ -62,11 +62,11 @@ def main(spec: str, overrides: list[str]) -> None:
         es = make_es(cfg, actor)
         tell = es.tell
 
-        def corrupted_tell(returns):
+        def corrupted_tell(population, returns):
             if where == "es_return" and active():
                 returns = torch.as_tensor(returns).clone()
                 returns[0] = float("nan")
-            out = tell(returns)
+            out = tell(population, returns)
             if where == "es_mean" and active():
                 with torch.no_grad():
                     es.mean[0] = float("nan")

@@ -89,3 +89,41 @@ def test_gradient_steps_follow_the_reference_schedule():
     assert not torch.equal(population[0], sampled[0]) and not torch.equal(population[1], sampled[1])
     assert torch.equal(population[2:], sampled[2:])
     assert torch.equal(population[1], flat_parameters(actor))
+
+
+def test_cem_has_the_ask_tell_interface_and_the_es_phase_runs_it():
+    """The ES phase of Algorithm 1 takes any strategy with the ask/tell interface: two CEM
+    generations on Swimmer, every transition routed, the mean moved, the generation counted."""
+    from torchrl_esrl.algorithm.es_phase import es_phase
+    from torchrl_esrl.collectors.es_collector import ESCollector
+    from torchrl_esrl.data.multibuffer import MultiBuffer
+    from torchrl_esrl.data.threshold import Threshold
+    from torchrl_esrl.envs import make_env
+    from torchrl_esrl.es.strategy import EvolutionStrategy
+    from torchrl_esrl.modules.networks import flat_parameters, make_actor
+
+    actor = make_actor(8, make_env("swimmer").action_spec, (16, 16))
+    cem = DiagonalCEM(flat_parameters(actor), population_size=4, sigma_init=1e-2, generator=torch.Generator().manual_seed(0))
+    assert isinstance(cem, EvolutionStrategy)
+    collector = ESCollector("swimmer", actor, backend="gym", max_episode_steps=30, seed=3)
+    buffer = MultiBuffer(ratio=(0.5, 0.5, 0.0), capacity=1000, batch_size=8, min_size=8)
+    before = cem.mean.clone()
+    returns = es_phase(cem, collector, buffer, Threshold(0.9), generations=2)
+    assert len(returns) == 2 and cem.generation == 2
+    sizes = buffer.sizes()
+    assert sizes["good"] + sizes["bad"] == 2 * 4 * 30 and sizes["noisy"] == 0
+    assert not torch.equal(cem.mean, before)
+
+
+def test_cem_set_mean_and_non_finite_returns():
+    cem = DiagonalCEM(torch.zeros(3), population_size=4, sigma_init=0.1, generator=torch.Generator().manual_seed(0))
+    var = cem.var.clone()
+    cem.set_mean(torch.full((3,), 4.0), mix=0.25)
+    assert torch.allclose(cem.mean, torch.full((3,), 1.0)) and torch.equal(cem.var, var)
+    cem.set_mean(torch.full((3,), 2.0), reset_optimizer=True)
+    assert torch.equal(cem.mean, torch.full((3,), 2.0))
+    population = cem.ask()
+    assert cem.mirrored(population) is None  # CEM-RL's members are evaluated row by row
+    with pytest.raises(FloatingPointError, match="non-finite"):
+        cem.tell(population, torch.tensor([1.0, float("nan"), 0.0, 2.0]))
+    assert cem.generation == 0 and torch.equal(cem.mean, torch.full((3,), 2.0))

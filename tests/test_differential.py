@@ -270,7 +270,7 @@ def play(case: Case, cfg, write=None) -> Played:
 
     es, es_collector = factories.make_es(cfg, actor), factories.make_es_collector(cfg, actor)
     population = es.ask()
-    generation = es_collector.evaluate(population, GENERATION_SEEDS, mirrored=es.mirrored())
+    generation = es_collector.evaluate(population, GENERATION_SEEDS, mirrored=es.mirrored(population))
     evaluator = factories.make_evaluator(cfg, actor)
     vector = flat_parameters(actor)
     evaluation = evaluator.evaluate_policy(vector, 1, EVALUATION_SEEDS)

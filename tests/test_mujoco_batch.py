@@ -165,9 +165,9 @@ def test_mirrored_forward_gives_the_episodes_of_the_flat_rows(env_id, workers):
     es = OpenES(params[0].clone(), population_size=members, sigma=0.3, generator=torch.Generator().manual_seed(4))
     params = es.ask()
     seeds = [7 * p + 1 for p in range(members)]
-    reference = GymBackend(env_id, policy, max_episode_steps=steps).rollout(params, seeds, mirrored=es.mirrored())
+    reference = GymBackend(env_id, policy, max_episode_steps=steps).rollout(params, seeds, mirrored=es.mirrored(params))
     backend = MujocoBatchBackend(env_id, policy, max_episode_steps=steps, nthread=2, workers=workers, chunks_per_worker=workers, min_chunk=2)
-    mirrored = backend.rollout(params, seeds, mirrored=es.mirrored())
+    mirrored = backend.rollout(params, seeds, mirrored=es.mirrored(params))
     assert torch.equal(mirrored.lengths, reference.lengths)
     torch.testing.assert_close(mirrored.returns, reference.returns, rtol=1e-6, atol=1e-6)
     for key in KEYS:
@@ -175,8 +175,8 @@ def test_mirrored_forward_gives_the_episodes_of_the_flat_rows(env_id, workers):
     flat = backend.rollout(params, seeds)
     assert not torch.equal(flat.transitions.get("action"), mirrored.transitions.get("action"))  # the pairs' forward was used
     other = MujocoBatchBackend(env_id, policy, max_episode_steps=steps, nthread=2, workers=3 - workers, chunks_per_worker=1)
-    assert torch.equal(other.rollout(params, seeds, mirrored=es.mirrored()).returns, mirrored.returns)
-    chunks = backend.chunks(members, es.mirrored())
+    assert torch.equal(other.rollout(params, seeds, mirrored=es.mirrored(params)).returns, mirrored.returns)
+    chunks = backend.chunks(members, es.mirrored(params))
     assert len(chunks) == workers**2
     for chunk in chunks:  # whole pairs: member k with member K + k
         pairs = np.arange(chunk.pairs.start, chunk.pairs.stop)

@@ -6,7 +6,12 @@ import torch
 from tensordict import TensorDict
 
 from torchrl_esrl.envs import make_env
-from torchrl_esrl.modules.networks import Mirrored, PopulationActor, flat_parameters, load_flat_parameters, make_actor, one_blas_thread
+from torch import nn
+from torchrl.modules import MLP
+
+from torchrl_esrl.modules.networks import (
+    Mirrored, PopulationActor, describe_actor, describe_mlp, flat_parameters, load_flat_parameters, make_actor, make_critic, one_blas_thread,
+)
 
 
 def test_actor_is_the_papers_2x256_tanh_network_within_bounds():
@@ -39,6 +44,45 @@ def test_population_actor_matches_each_member_loaded_into_the_actor():
         expected = member(TensorDict(observation=observations[p : p + 1], batch_size=[1]))["action"]
         torch.testing.assert_close(batched[p : p + 1], expected, rtol=1e-5, atol=1e-6)
     assert batched.abs().max() <= 2.0 and batched.abs().max() > 1.0
+
+
+def test_describe_mlp_reads_layers_biases_and_activations_or_says_why_not():
+    """The one reading of a network that every fast piece decides from."""
+    critic = make_critic(4, 2, (8, 6), "tanh")
+    description = describe_mlp(critic.module)
+    assert description.sizes == [(8, 6), (6, 8), (1, 6)]
+    assert [layer.activation for layer in description.layers] == ["tanh", "tanh", None]
+    assert [layer.name for layer in description.layers] == ["0", "2", "4"]
+    assert description.plain_refusal() is None
+    biasless = nn.Sequential(nn.Linear(4, 3, bias=False), nn.ReLU(), nn.Linear(3, 1))
+    assert describe_mlp(biasless).plain_refusal() == "a Linear without bias"
+    assert describe_mlp(nn.Sequential(nn.Linear(4, 3), nn.Linear(3, 1))).plain_refusal() == "two Linear layers without an activation between them"
+    assert describe_mlp(nn.Sequential(nn.Linear(4, 3), nn.Tanh())).plain_refusal() == "an activation after the last Linear"
+    assert describe_mlp(nn.Sequential(nn.Linear(4, 3), nn.ELU(), nn.Linear(3, 1))).startswith("ELU")
+    assert describe_mlp(nn.Sequential(nn.Linear(4, 3), nn.Tanh(), nn.Tanh())) == "Tanh not right after a Linear"
+    assert "reshaped" in describe_mlp(MLP(in_features=4, out_features=(2, 1), num_cells=[3]))
+    assert "Sequential" in describe_mlp(type("Custom", (nn.Sequential,), {})(nn.Linear(4, 1)))
+    env = make_env("pendulum")
+    assert describe_actor(make_actor(3, env.action_spec)).mlp.sizes == [(256, 3), (256, 256), (1, 256)]
+    assert describe_actor(critic).startswith("actor is not")
+
+
+def test_population_actor_computes_mixed_activations_and_refuses_a_biasless_linear():
+    env = make_env("pendulum")
+    actor = make_actor(3, env.action_spec, (16, 16), "tanh")
+    actor[0].module[3] = nn.ReLU()  # tanh after the first Linear, ReLU after the second
+    population = flat_parameters(actor)[None] + 0.3 * torch.randn(4, flat_parameters(actor).numel())
+    observations = torch.randn(4, 3)
+    batched = PopulationActor(actor)(population, observations)
+    member = copy.deepcopy(actor)
+    for p in range(4):
+        load_flat_parameters(member, population[p])
+        expected = member(TensorDict(observation=observations[p : p + 1], batch_size=[1]))["action"]
+        torch.testing.assert_close(batched[p : p + 1], expected, rtol=1e-5, atol=1e-6)
+    actor[0].module[2] = nn.Linear(16, 16, bias=False)  # its flat vector has no bias to split
+    assert PopulationActor.refusal(actor) == "actor MLP: a Linear without bias"
+    with pytest.raises(ValueError, match="ModulePopulation"):
+        PopulationActor(actor)
 
 
 def test_population_actor_gives_a_block_of_members_the_actions_of_the_whole_population():

@@ -27,7 +27,8 @@ def test_es_update_improves_a_known_objective():
     es = OpenES(torch.zeros(50), population_size=40, sigma=0.05, lr=0.05, generator=torch.Generator().manual_seed(0))
     start = fitness(es.mean.detach()[None]).item()
     for _ in range(300):
-        es.tell(fitness(es.ask()))
+        population = es.ask()
+        es.tell(population, fitness(population))
     end = fitness(es.mean.detach()[None]).item()
     assert end > 0.1 * start  # squared distance shrunk by more than 10x
     assert end > start
@@ -51,15 +52,14 @@ def test_invalid_settings_are_rejected():
 
 def test_non_finite_return_stops_the_update():
     es = OpenES(torch.zeros(3), population_size=4)
-    es.ask()
+    population = es.ask()
     with pytest.raises(FloatingPointError, match="non-finite"):
-        es.tell(torch.tensor([1.0, float("nan"), 0.0, 2.0]))
+        es.tell(population, torch.tensor([1.0, float("nan"), 0.0, 2.0]))
 
 
 def test_set_mean_copies_and_can_reset_adam():
     es = OpenES(torch.zeros(5), population_size=4)
-    es.ask()
-    es.tell(torch.arange(4.0))
+    es.tell(es.ask(), torch.arange(4.0))
     assert es.optimizer.state
     es.set_mean(torch.full((5,), 3.0), reset_optimizer=True)
     assert torch.equal(es.mean.detach(), torch.full((5,), 3.0))
@@ -68,8 +68,7 @@ def test_set_mean_copies_and_can_reset_adam():
 
 def test_state_dict_round_trip_continues_identically():
     a = OpenES(torch.zeros(5), population_size=4, generator=torch.Generator().manual_seed(1))
-    a.ask()
-    a.tell(torch.arange(4.0))
+    a.tell(a.ask(), torch.arange(4.0))
     b = OpenES(torch.ones(5), population_size=4, generator=torch.Generator().manual_seed(9))
     b.load_state_dict(a.state_dict())
     assert torch.equal(a.ask(), b.ask())
@@ -78,9 +77,25 @@ def test_state_dict_round_trip_continues_identically():
 def test_mirrored_is_the_asked_population_as_pairs():
     es = OpenES(torch.randn(9), population_size=6, sigma=0.01, generator=torch.Generator().manual_seed(0))
     population = es.ask()
-    mirrored = es.mirrored()
+    mirrored = es.mirrored(population)
     assert mirrored.offsets.shape == (3, 9)
     assert torch.equal(population, torch.cat([mirrored.center + mirrored.offsets, mirrored.center - mirrored.offsets]))
-    es.tell(torch.arange(6.0))
-    assert es.mirrored() is None  # told: no population is pending
-    assert OpenES(torch.zeros(3), population_size=3, antithetic=False).mirrored() is None
+    assert es.mirrored(population.clone()) is not None  # the same rows
+    assert es.mirrored(population.flip(0)) is None  # another population: its rows, flat
+    es.tell(population, torch.arange(6.0))
+    assert es.mirrored(population) is None  # told: no population is pending
+    plain = OpenES(torch.zeros(3), population_size=3, antithetic=False)
+    assert plain.mirrored(plain.ask()) is None
+
+
+def test_tell_refuses_a_population_that_was_not_asked():
+    """OpenAI-ES estimates its gradient from the noise it drew: told another population (edited
+    rows, as CEM-RL's RL half makes), it refuses instead of ignoring the edit."""
+    es = OpenES(torch.zeros(4), population_size=4, generator=torch.Generator().manual_seed(0))
+    population = es.ask()
+    edited = population.clone()
+    edited[0] += 1.0
+    with pytest.raises(ValueError, match="not the one the last ask returned"):
+        es.tell(edited, torch.arange(4.0))
+    es.tell(population.clone(), torch.arange(4.0))  # equal rows are the asked population
+    assert es.generation == 1

@@ -61,8 +61,7 @@ def test_soft_overwrite_moves_the_es_mean_part_way_to_the_actor():
     env = make_env("swimmer")
     actor = make_actor(8, env.action_spec)
     es = OpenES(flat_parameters(actor), population_size=4, generator=torch.Generator().manual_seed(0))
-    es.ask()
-    es.tell(torch.tensor([1.0, 4.0, 2.0, 3.0]))  # one real ES step: Adam has moments to clear
+    es.tell(es.ask(), torch.tensor([1.0, 4.0, 2.0, 3.0]))  # one real ES step: Adam has moments to clear
     old_mean = es.mean.detach().clone()
     with torch.no_grad():
         for parameter in actor.parameters():

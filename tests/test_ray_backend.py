@@ -61,7 +61,8 @@ def test_ray_generation_equals_local_generation(cluster):
         assert len(set(remote.backend.nodes())) == 2  # the two actors run on different nodes
         expected, got = local.evaluate(params), remote.evaluate(params)  # same seed stream, same seeds
         es = OpenES(mean, population_size=36, sigma=0.3, generator=generator)  # 18 pairs: shares of 16 and 2 pairs
-        population, mirrored = es.ask(), es.mirrored()
+        population = es.ask()
+        mirrored = es.mirrored(population)
         pairs_expected, pairs_got = local.evaluate(population, mirrored=mirrored), remote.evaluate(population, mirrored=mirrored)
     finally:
         remote.backend.close()

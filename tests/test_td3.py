@@ -82,11 +82,12 @@ def test_td3_with_three_buffers_learns_pendulum():
     before = es_collector.evaluate_policy(flat_parameters(actor), 5).returns.mean().item()
     for _ in range(6):
         for _ in range(2):
-            generation = es_collector.evaluate(es.ask())
+            population = es.ask()
+            generation = es_collector.evaluate(population)
             good = threshold.route(generation.returns)
             buffer.extend(generation.transitions[generation.member_mask(good)], "good")
             buffer.extend(generation.transitions[generation.member_mask(~good)], "bad")
-            es.tell(generation.returns)
+            es.tell(population, generation.returns)
         td3_phase(1000, batches, td3, buffer, on_episode=threshold.observe)
     collector.shutdown()
     after = es_collector.evaluate_policy(flat_parameters(actor), 5).returns.mean().item()

@@ -20,7 +20,8 @@ def es_phase(
     shared_buffer: bool = False,
     on_generation: Callable[[int], None] | None = None,
 ) -> list[torch.Tensor]:
-    """Run ``generations`` generations (ask, evaluate one episode each, route, tell).
+    """Run ``generations`` generations of ``es`` (any :class:`~torchrl_esrl.es.strategy.EvolutionStrategy`:
+    ask, evaluate one episode each, route, tell).
 
     Each offspring's trajectory goes to ``good`` when its return reaches the threshold, else to
     ``bad`` (offspring by offspring, as Algorithm 1). ``shared_buffer`` is the ERL-style ablation:
@@ -30,14 +31,14 @@ def es_phase(
     returns = []
     for index in range(generations):
         population = es.ask()
-        generation = es_collector.evaluate(population, mirrored=es.mirrored())
+        generation = es_collector.evaluate(population, mirrored=es.mirrored(population))
         good = threshold.route(generation.returns)
         if shared_buffer:
             buffer.extend(generation.transitions, "noisy")
         else:
             buffer.extend(generation.transitions[generation.member_mask(good)], "good")
             buffer.extend(generation.transitions[generation.member_mask(~good)], "bad")
-        es.tell(generation.returns)  # raises on a non-finite return
+        es.tell(population, generation.returns)  # raises on a non-finite return
         check_finite("ES mean", es.mean)
         returns.append(generation.returns)
         if on_generation is not None:

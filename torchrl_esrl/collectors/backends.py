@@ -8,6 +8,8 @@ from __future__ import annotations
 import importlib
 from collections.abc import Callable
 
+from torchrl_esrl.errors import ConfigError
+
 BACKENDS: dict[str, str] = {
     "gym": "torchrl_esrl.collectors.gym_backend:GymBackend",  # the reference, any gymnasium id
     "mujoco_batch": "torchrl_esrl.collectors.mujoco_batch:MujocoBatchBackend",  # gymnasium v5 MuJoCo tasks
@@ -34,6 +36,24 @@ def refusals(env) -> dict[str, str | None]:
         refusal = getattr(backend_class(name), "refusal", None)
         out[name] = refusal(env) if refusal is not None else None
     return out
+
+
+def resolve_backend(name: str, env, fast_physics: bool = True, field: str = "es.backend", allowed=None) -> str:
+    """The backend that plays ``env`` for ``name`` (``es.backend``, or ``ray.worker_backend``
+    with ``allowed=LOCAL_BACKENDS``): ``auto`` resolved, the one place it is, to the fastest
+    local backend for ``env`` (:func:`default_backend`), or to the ``gym`` reference without
+    ``fast_physics``; an explicit ``mujoco_batch`` without ``fast_physics`` is refused (the run's
+    pieces would say ``es_physics reference`` while the fast physics ran). Raises a one-line
+    :class:`~torchrl_esrl.errors.ConfigError` naming ``field``."""
+    allowed = list(BACKENDS if allowed is None else allowed)
+    if name != "auto" and name not in allowed:
+        raise ConfigError(f"{field}: unknown backend '{name}' (allowed: {', '.join(['auto', *allowed])})")
+    if name == "mujoco_batch" and not fast_physics:
+        others = [n for n in allowed if n != "mujoco_batch"]
+        raise ConfigError(f"{field}: mujoco_batch is the fast physics (es_physics), which implementation=reference leaves out (allowed: {', '.join(['auto', *others])}, or implementation=fast)")
+    if name == "auto":
+        return default_backend(env) if fast_physics else "gym"
+    return name
 
 
 def default_backend(env) -> str:

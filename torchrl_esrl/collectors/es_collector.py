@@ -12,10 +12,9 @@ from collections.abc import Sequence
 import numpy as np
 import torch
 
-from torchrl_esrl.collectors.backends import BACKENDS, available_backends, backend_class, default_backend
+from torchrl_esrl.collectors.backends import backend_class, resolve_backend
 from torchrl_esrl.collectors.generation import Generation
 from torchrl_esrl.envs import EnvSpec, as_env_spec
-from torchrl_esrl.errors import ConfigError
 from torchrl_esrl.modules.networks import Mirrored, ModulePopulation
 
 
@@ -27,7 +26,8 @@ class ESCollector:
             transforms), or a short name (``halfcheetah``) or gymnasium id.
         actor: the actor built by :func:`torchrl_esrl.modules.networks.make_actor` (its architecture and
             action bounds define every member).
-        backend: ``"auto"`` or a name in :data:`BACKENDS`.
+        backend: a name in :data:`~torchrl_esrl.collectors.backends.BACKENDS`, or ``"auto"``
+            (:func:`~torchrl_esrl.collectors.backends.resolve_backend`: the fastest for the task).
         max_episode_steps: episode length limit (the env's own when None).
         seed: seeds the stream of episode seeds (one fresh reset seed per member and call).
         population: the class that computes the members' actions from their flat parameters:
@@ -41,10 +41,7 @@ class ESCollector:
         self.env = as_env_spec(env, max_episode_steps)
         self.env_id = self.env.id
         self.population_actor = population(actor)
-        if backend == "auto":
-            backend = default_backend(self.env)
-        if backend not in BACKENDS:
-            raise ConfigError(f"es.backend: unknown backend '{backend}' (allowed: {', '.join(available_backends())})")
+        backend = resolve_backend(backend, self.env)
         self.backend = backend_class(backend)(self.env, self.population_actor, **backend_kwargs)
         self.seeds = np.random.default_rng(seed)
         self.frames = 0

@@ -9,11 +9,13 @@ on a batch of its own: the workers do not wait for each other within an episode.
 
 Why hand-written: gymnasium computes observations and rewards one env at a time from an
 ``MjData``; ``mujoco.batch`` gives the raw state of all simulations as one array but knows nothing
-about the tasks. The formulas below are those of ``gymnasium/envs/mujoco/*_v5.py``; every setting
+about the tasks. The formulas here and in :mod:`~torchrl_esrl.collectors.mujoco_tasks` (the tasks' rules)
+are those of ``gymnasium/envs/mujoco/*_v5.py``; every setting
 they read (reward weights, healthy ranges, ``frame_skip``, Ant's main body, the observation
 layout) is read from the gymnasium env the backend builds from the run's
 :class:`~torchrl_esrl.envs.EnvSpec`, so it cannot drift from gymnasium's. Keyword arguments
-outside :data:`REPRODUCED_KWARGS` and :data:`RENDERING_KWARGS` are refused by
+outside :data:`~torchrl_esrl.collectors.mujoco_tasks.REPRODUCED_KWARGS` and
+:data:`~torchrl_esrl.collectors.mujoco_tasks.RENDERING_KWARGS` are refused by
 :meth:`MujocoBatchBackend.refusal`, naming them; the tests check observations, actions, rewards
 and flags against gymnasium, per keyword.
 
@@ -37,116 +39,15 @@ import torch
 
 from torchrl_esrl.collectors.generation import Generation, transitions_from_arrays
 from torchrl_esrl.envs import EnvSpec, as_env_spec
+from torchrl_esrl.collectors.mujoco_tasks import (
+    RENDERING_KWARGS, REPRODUCED_KWARGS, TASKS, TaskRules, env_refusals, observation_layout, spec_refusals,
+)
 from torchrl_esrl.modules.networks import Mirrored, PopulationActor, one_blas_thread
 from torchrl_esrl.torchrl_private import gym_mujoco_constants
 
+__all__ = ["MujocoBatchBackend", "RENDERING_KWARGS", "REPRODUCED_KWARGS", "TASKS", "TaskRules"]  # the tasks' rules live in mujoco_tasks
+
 _INTEGRATION_STATE = mujoco.mjtState.mjSTATE_INTEGRATION
-
-
-@dataclass(frozen=True)
-class TaskRules:
-    """What one gymnasium v5 locomotion task computes after each physics step; the settings it
-    reads come from the gymnasium env (:func:`~torchrl_esrl.torchrl_private.gym_mujoco_constants`)."""
-
-    skipped_qpos: int  # leading qpos entries left out of the observation (x, or x and y) unless
-    # exclude_current_positions_from_observation=False
-    clip_qvel: float | None  # Walker2d and Hopper clip velocities in the observation
-    x_from_main_body: bool  # Ant measures progress on the xpos of its main_body, the others on qpos[0]
-    healthy: Callable[[np.ndarray, np.ndarray, dict], np.ndarray] | None  # (qpos, qvel, constants) -> [n] bool
-    contact_forces: bool  # Ant: a contact cost, and clipped cfrc_ext in the observation unless
-    # include_cfrc_ext_in_observation=False
-
-
-def _walker2d_healthy(qpos, qvel, c):
-    z, angle = qpos[:, 1], qpos[:, 2]
-    (min_z, max_z), (min_a, max_a) = c["_healthy_z_range"], c["_healthy_angle_range"]
-    return (min_z < z) & (z < max_z) & (min_a < angle) & (angle < max_a)
-
-
-def _hopper_healthy(qpos, qvel, c):
-    z, angle = qpos[:, 1], qpos[:, 2]
-    min_s, max_s = c["_healthy_state_range"]
-    (min_z, max_z), (min_a, max_a) = c["_healthy_z_range"], c["_healthy_angle_range"]
-    state = np.concatenate([qpos[:, 2:], qvel], axis=1)
-    healthy_state = ((min_s < state) & (state < max_s)).all(axis=1)
-    return healthy_state & (min_z < z) & (z < max_z) & (min_a < angle) & (angle < max_a)
-
-
-def _ant_healthy(qpos, qvel, c):
-    min_z, max_z = c["_healthy_z_range"]
-    finite = np.isfinite(qpos).all(axis=1) & np.isfinite(qvel).all(axis=1)
-    return finite & (min_z <= qpos[:, 2]) & (qpos[:, 2] <= max_z)  # inclusive, as gymnasium's Ant
-
-
-TASKS: dict[str, TaskRules] = {
-    "HalfCheetah-v5": TaskRules(1, None, False, None, False),
-    "Swimmer-v5": TaskRules(2, None, False, None, False),
-    "Walker2d-v5": TaskRules(1, 10.0, False, _walker2d_healthy, False),
-    "Hopper-v5": TaskRules(1, 10.0, False, _hopper_healthy, False),
-    "Ant-v5": TaskRules(2, None, True, _ant_healthy, True),
-}
-
-# Keyword arguments of the v5 constructors (``env.kwargs``) whose effect the backend reproduces:
-# it reads each back from the gymnasium env it builds, or it only changes gymnasium's own reset,
-# which the backend replays.
-REPRODUCED_KWARGS = frozenset({
-    "frame_skip",  # env.frame_skip (physics steps per step) and env.dt
-    "forward_reward_weight", "ctrl_cost_weight", "contact_cost_weight", "healthy_reward",
-    "terminate_when_unhealthy", "healthy_z_range", "healthy_angle_range", "healthy_state_range",
-    "contact_force_range",  # the env's constants, as its step reads them
-    "main_body",  # the body id gymnasium's data.body(main_body) resolves
-    "exclude_current_positions_from_observation", "include_cfrc_ext_in_observation",  # the observation layout
-    "reset_noise_scale",  # gymnasium's reset
-    "xml_file",  # only the task's own model file (another model is refused)
-})  # fmt: skip
-# MujocoEnv's rendering settings: no observation, reward or flag depends on them; render_mode
-# "human" is refused (gymnasium renders at every reset and step).
-RENDERING_KWARGS = frozenset({"render_mode", "width", "height", "camera_id", "camera_name", "default_camera_config", "max_geom", "visual_options"})
-
-
-def _spec_refusals(spec: EnvSpec) -> list[str]:
-    """What the spec asks that the backend does not compute, from the spec alone."""
-    if spec.id not in TASKS:
-        return [f"env.id: {spec.id} is not a task it knows ({', '.join(TASKS)})"]
-    reasons = []
-    for key, value in spec.kwargs.items():
-        if key not in REPRODUCED_KWARGS | RENDERING_KWARGS:
-            reasons.append(f"env.kwargs.{key}={value!r}: not a keyword it reproduces")
-        elif key == "render_mode" and value == "human":
-            reasons.append(f"env.kwargs.{key}={value!r}: gymnasium renders at every step")
-    return reasons + [change for change in spec.changes() if not change.startswith("env.kwargs.")]
-
-
-def _observation_layout(rules: TaskRules, constants: dict, model: mujoco.MjModel) -> tuple[int, bool, int]:
-    """(qpos entries skipped, contact forces included, observation size) as the env's
-    ``_get_obs`` builds the observation."""
-    skipped = rules.skipped_qpos if constants["_exclude_current_positions_from_observation"] else 0
-    contact_forces = rules.contact_forces and bool(constants["_include_cfrc_ext_in_observation"])
-    return skipped, contact_forces, model.nq - skipped + model.nv + (6 * (model.nbody - 1) if contact_forces else 0)
-
-
-def _env_refusals(spec: EnvSpec, gym_env) -> list[str]:
-    """What the gymnasium env built from ``spec`` computes that the backend would not."""
-    env, rules = gym_env.unwrapped, TASKS[spec.id]
-    constants = gym_mujoco_constants(env)
-    reasons = []
-    if "xml_file" in spec.kwargs:
-        own = as_env_spec(spec.id).make_gym()
-        try:
-            if not os.path.samefile(env.fullpath, own.unwrapped.fullpath):
-                reasons.append(f"env.kwargs.xml_file={spec.kwargs['xml_file']!r}: another model than {spec.id}'s, the one its rules are checked on")
-        finally:
-            own.close()
-    if rules.x_from_main_body:
-        try:
-            env.data.body(constants["_main_body"])
-        except (IndexError, KeyError, TypeError) as error:
-            reasons.append(f"env.kwargs.main_body={constants['_main_body']!r}: not a body of the model ({str(error).splitlines()[0]})")
-    size = int(np.prod(env.observation_space.shape))
-    expected = _observation_layout(rules, constants, env.model)[2]
-    if size != expected:
-        reasons.append(f"env.kwargs: an observation of {size} entries, not the {expected} of {spec.id}'s layout")
-    return reasons
 
 
 @dataclass(frozen=True)
@@ -222,7 +123,7 @@ class MujocoBatchBackend:
         persistent: bool = False,
     ):
         spec = as_env_spec(env, max_episode_steps)
-        reasons = _spec_refusals(spec)
+        reasons = spec_refusals(spec)
         if reasons:
             raise ValueError(f"mujoco_batch backend cannot play this env exactly as gymnasium would: {', '.join(reasons)}")
         self.env_id = spec.id
@@ -236,13 +137,13 @@ class MujocoBatchBackend:
         self.chunks_per_worker, self.min_chunk = int(chunks_per_worker), int(min_chunk)
         self._pool: ThreadPoolExecutor | None = None
         reset_env = self.workers[0].reset_env
-        reasons = _env_refusals(spec, reset_env)
+        reasons = env_refusals(spec, reset_env)
         if reasons:
             raise ValueError(f"mujoco_batch backend cannot play this env exactly as gymnasium would: {', '.join(reasons)}")
         env = reset_env.unwrapped
         self.constants = gym_mujoco_constants(env)  # gymnasium's own values, so the batch cannot drift from them
         self.model = env.model
-        self.skipped_qpos, self.contact_forces_in_obs, _ = _observation_layout(self.rules, self.constants, self.model)
+        self.skipped_qpos, self.contact_forces_in_obs, _ = observation_layout(self.rules, self.constants, self.model)
         # The body whose x gives Ant's progress, as gymnasium's data.body(main_body) resolves it.
         self.x_body = int(env.data.body(self.constants["_main_body"]).id) if self.rules.x_from_main_body else None
         self.frame_skip = int(env.frame_skip)
@@ -266,7 +167,7 @@ class MujocoBatchBackend:
             spec = as_env_spec(env)
         except Exception:  # noqa: BLE001 - an id that does not resolve is not one of the tasks
             return f"env.id: {env!r} is not a task it knows ({', '.join(TASKS)})"
-        reasons = _spec_refusals(spec)
+        reasons = spec_refusals(spec)
         if not reasons and spec.kwargs:
             try:
                 gym_env = spec.make_gym()
@@ -274,7 +175,7 @@ class MujocoBatchBackend:
                 text = str(error).strip().splitlines()[0] if str(error).strip() else type(error).__name__
                 return text if text.startswith("env.") else f"env.kwargs: {text}"
             try:
-                reasons = _env_refusals(spec, gym_env)
+                reasons = env_refusals(spec, gym_env)
             finally:
                 gym_env.close()
         return ", ".join(reasons) if reasons else None

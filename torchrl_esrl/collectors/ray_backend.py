@@ -23,7 +23,7 @@ from collections.abc import Sequence
 
 import torch
 
-from torchrl_esrl.collectors.backends import LOCAL_BACKENDS, backend_class, default_backend
+from torchrl_esrl.collectors.backends import LOCAL_BACKENDS, backend_class, resolve_backend
 from torchrl_esrl.collectors.generation import Generation
 from torchrl_esrl.modules.networks import Mirrored, PopulationActor
 
@@ -35,9 +35,8 @@ class _RolloutWorker:
 
     def __init__(self, env_id: str, population_actor: PopulationActor, max_episode_steps, backend: str, backend_kwargs: dict):
         torch.set_num_threads(max(1, int(backend_kwargs.pop("torch_threads", 1))))
-        backend = default_backend(env_id) if backend == "auto" else backend
-        if backend not in LOCAL_BACKENDS:
-            raise ValueError(f"ray.worker_backend: '{backend}' is not a local backend (allowed: auto, {', '.join(LOCAL_BACKENDS)})")
+        if backend not in LOCAL_BACKENDS:  # resolved by RayBackend
+            raise ValueError(f"ray.worker_backend: '{backend}' is not a local backend (allowed: {', '.join(LOCAL_BACKENDS)})")
         self.backend_name = backend
         self.backend = backend_class(backend)(env_id, population_actor, max_episode_steps=max_episode_steps, **backend_kwargs)
 
@@ -107,7 +106,8 @@ class RayBackend:
         env_id, population_actor, max_episode_steps: as for every backend.
         address: Ray cluster address (``"auto"``, ``"host:port"``); None starts Ray on this machine.
         num_workers: Ray actors; each evaluates a contiguous share of every population.
-        worker_backend: the local backend each actor runs (``auto`` picks the fastest for the env).
+        worker_backend: the local backend each actor runs (``auto`` picks the fastest for the env,
+            :func:`~torchrl_esrl.collectors.backends.resolve_backend`).
         num_cpus_per_worker: CPUs Ray reserves for each actor (and torch threads it uses).
         worker_kwargs: extra keyword arguments of the worker backend (e.g. its thread count).
         spread: place actors on different nodes when possible (Ray's ``SPREAD`` strategy).
@@ -133,6 +133,7 @@ class RayBackend:
 
         if num_workers < 1:
             raise ValueError(f"ray.num_workers must be a positive integer, got {num_workers}")
+        worker_backend = resolve_backend(worker_backend, env_id, field="ray.worker_backend", allowed=LOCAL_BACKENDS)
         self.started_ray = connect(address, object_store_memory=object_store_memory)
         worker_kwargs = dict(worker_kwargs or {})
         worker_kwargs.setdefault("torch_threads", max(1, int(num_cpus_per_worker)))
@@ -187,13 +188,6 @@ class RayBackend:
         self.workers = []
         if self.started_ray:
             ray.shutdown()
-
-
-def ray_backend_kwargs(cfg) -> dict:
-    """Keyword arguments of :class:`RayBackend` from the ``ray`` section of the Hydra config."""
-    from omegaconf import OmegaConf
-
-    return OmegaConf.to_container(cfg.ray, resolve=True)  # its keys are RayBackend's arguments
 
 
 def make_ray_backend(env_id: str, population_actor: PopulationActor, max_episode_steps: int | None = None, **kwargs) -> RayBackend:

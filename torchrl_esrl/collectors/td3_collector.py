@@ -14,14 +14,14 @@ from tensordict import TensorDict, TensorDictBase
 from tensordict.nn import TensorDictSequential
 from torchrl.collectors import Collector
 from torchrl.envs import GymWrapper, TransformedEnv
-from torchrl.modules import AdditiveGaussianModule, TanhModule
+from torchrl.modules import AdditiveGaussianModule
 
 from torchrl_esrl.envs import describe_transform, project_transforms
-from torchrl_esrl.modules.networks import squash
+from torchrl_esrl.modules.networks import describe_actor, squash
 from torchrl_esrl.modules.warmup import RandomWarmup
 from torchrl_esrl.torchrl_private import collector_carrier, gym_env_of, gym_env_state, load_gym_env_state, restore_collector, unchecked_tensordict
 
-_ACTIVATION_FUNCTIONS = {torch.nn.Tanh: torch.tanh, torch.nn.ReLU: torch.relu}  # what each module's forward computes
+_ACTIVATION_FUNCTIONS = {"tanh": torch.tanh, "relu": torch.relu, None: None}  # what each FAST_ACTIVATIONS module's forward computes
 
 
 def make_td3_collector(env, td3, frames_per_batch: int = 1, device="cpu") -> Collector:
@@ -40,23 +40,12 @@ def make_td3_collector(env, td3, frames_per_batch: int = 1, device="cpu") -> Col
     )
 
 
-def _actor_layers(actor):
-    """``[(weight, bias, activation function or None), ...]`` of a :func:`~torchrl_esrl.modules.networks.make_actor`
-    actor's MLP (Linear layers, each followed by at most one tanh or ReLU), with the Parameter
-    objects themselves (TD3's optimiser and ``load_flat_parameters`` update them in place); None
-    for any other layer sequence."""
-    mlp = getattr(actor[0], "module", None) if isinstance(actor, TensorDictSequential) and len(actor.module) == 2 else None
-    if not isinstance(mlp, torch.nn.Sequential) or isinstance(getattr(mlp, "out_features", None), (tuple, list, torch.Size)):
-        return None
-    layers = []
-    for module in mlp:
-        if type(module) is torch.nn.Linear:
-            layers.append((module.weight, module.bias, None))
-        elif type(module) in _ACTIVATION_FUNCTIONS and layers and layers[-1][2] is None:
-            layers[-1] = (*layers[-1][:2], _ACTIVATION_FUNCTIONS[type(module)])
-        else:
-            return None
-    return layers or None
+def _actor_layers(description) -> list:
+    """``[(weight, bias or None, activation function or None), ...]`` of an actor's
+    :func:`~torchrl_esrl.modules.networks.describe_actor` (Linear layers, each followed by at
+    most one tanh or ReLU), with the Parameter objects themselves (TD3's optimiser and
+    ``load_flat_parameters`` update them in place)."""
+    return [(layer.linear.weight, layer.linear.bias, _ACTIVATION_FUNCTIONS[layer.activation]) for layer in description.mlp.layers]
 
 
 def _refusal(env, policy, device) -> str | None:
@@ -76,10 +65,8 @@ def _refusal(env, policy, device) -> str | None:
     inner = policy.policy if isinstance(policy, RandomWarmup) else policy
     if not isinstance(inner, TensorDictSequential) or len(inner.module) != 2 or type(inner.module[1]) is not AdditiveGaussianModule:
         return "the policy must be the actor followed by AdditiveGaussianModule"
-    actor = inner.module[0]
-    if _actor_layers(actor) is None or not isinstance(actor[1], TanhModule) or list(actor[0].in_keys) != ["observation"]:
-        return "the actor must be Linear layers with tanh or ReLU between them, then TanhModule"
-    return None
+    description = describe_actor(inner.module[0])
+    return description if isinstance(description, str) else None
 
 
 class GymTD3Collector:
@@ -114,7 +101,7 @@ class GymTD3Collector:
         # Fujimoto's uniform warm-up (td3.random_frames) wraps the noisy actor: its draws, then the actor's.
         self.warmup = policy if isinstance(policy, RandomWarmup) else None
         actor, noise = (policy.policy if self.warmup is not None else policy)[:2]
-        self.layers = _actor_layers(actor)
+        self.layers = _actor_layers(describe_actor(actor))
         self.tanh_module = actor[1]
         self.noise = noise
         # Buffers that load_state_dict overwrites in place: looked up once, as the layers are.

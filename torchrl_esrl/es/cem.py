@@ -20,7 +20,8 @@ from __future__ import annotations
 
 import torch
 
-from torchrl_esrl.modules.networks import flat_parameters, load_flat_parameters
+from torchrl_esrl.es.strategy import checked_returns
+from torchrl_esrl.modules.networks import Mirrored, flat_parameters, load_flat_parameters
 
 
 def elite_weights(num_elites: int) -> torch.Tensor:
@@ -31,7 +32,8 @@ def elite_weights(num_elites: int) -> torch.Tensor:
 
 
 class DiagonalCEM:
-    """Cross-entropy method with a diagonal Gaussian (CEM-RL's ``sepCEM``).
+    """Cross-entropy method with a diagonal Gaussian (CEM-RL's ``sepCEM``), with the ask/tell
+    interface of :mod:`torchrl_esrl.es.strategy`.
 
     Args:
         mean: initial mean (``flat_parameters(actor)``).
@@ -81,12 +83,15 @@ class DiagonalCEM:
             eps = torch.randn(self.population_size, self.mean.numel(), generator=self.generator)
         return self.mean + self.var.sqrt() * eps
 
+    def mirrored(self, population: torch.Tensor) -> Mirrored | None:
+        """None: CEM-RL's population is evaluated row by row (its RL half rewrites members
+        before they play)."""
+        return None
+
     def tell(self, population: torch.Tensor, returns: torch.Tensor) -> torch.Tensor:
         """Update mean and variance from the evaluated ``population`` (as evaluated, i.e. after
         the TD3 steps of its RL half); returns the elite indices, best first."""
-        returns = torch.as_tensor(returns, dtype=torch.float64).reshape(-1)
-        if returns.numel() != population.shape[0]:
-            raise ValueError(f"expected {population.shape[0]} returns, got {returns.numel()}")
+        returns = checked_returns(returns, population, self.generation, torch.float64)
         elites = returns.argsort(descending=True, stable=True)[: self.num_elites]
         z = population[elites].float()
         old_mean = self.mean
@@ -95,6 +100,13 @@ class DiagonalCEM:
         self.var = self.weights @ (z - old_mean) ** 2 / self.num_elites + self.damping
         self.generation += 1
         return elites
+
+    @torch.no_grad()
+    def set_mean(self, vector: torch.Tensor, reset_optimizer: bool = False, mix: float = 1.0) -> None:
+        """Move the mean to ``(1 - mix) * mean + mix * vector`` (the overwrite rule, as
+        :meth:`OpenES.set_mean <torchrl_esrl.es.openes.OpenES.set_mean>`); the variance stays.
+        ``reset_optimizer`` changes nothing: CEM keeps no optimiser state."""
+        self.mean = self.mean.lerp(vector.reshape(-1).to(self.mean.dtype), float(mix))
 
     def state_dict(self) -> dict:
         return {"mean": self.mean.clone(), "var": self.var.clone(), "damping": self.damping, "generator": self.generator.get_state(), "generation": self.generation}

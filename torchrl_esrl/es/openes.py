@@ -2,8 +2,8 @@
 Salimans et al. 2017, Algorithm 2 with the paper's hyper-parameters).
 
 ``ask`` samples the population around the mean with antithetic noise pairs
-(``mean + sigma * eps``, ``mean - sigma * eps``); ``tell`` turns the returns into centred
-ranks, estimates the gradient of the expected return and lets Adam step the mean.
+(``mean + sigma * eps``, ``mean - sigma * eps``); ``tell(population, returns)`` (the ask/tell
+interface of :mod:`torchrl_esrl.es.strategy`) turns the returns into centred ranks, estimates the gradient of the expected return and lets Adam step the mean.
 The paper's update line ``mu <- 1/n sum F_i N_i`` drops the mean, the learning rate and
 sigma; we implement the update of Salimans et al. that it cites (docs/deviations.md).
 """
@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import torch
 
+from torchrl_esrl.es.strategy import checked_returns
 from torchrl_esrl.modules.networks import Mirrored
 
 
@@ -69,6 +70,7 @@ class OpenES:
         self.generation = 0
         self._noise: torch.Tensor | None = None
         self._center: torch.Tensor | None = None
+        self._population: torch.Tensor | None = None  # the last ask's, until told
 
     @property
     def num_parameters(self) -> int:
@@ -80,13 +82,20 @@ class OpenES:
         eps = torch.randn(half, self.num_parameters, generator=self.generator)
         self._noise = torch.cat([eps, -eps]) if self.antithetic else eps
         self._center = self.mean.detach().clone()
-        return self._center + self.sigma * self._noise
+        self._population = self._center + self.sigma * self._noise
+        return self._population
 
-    def mirrored(self) -> Mirrored | None:
-        """The last :meth:`ask`'s population as mirrored pairs ``mean +- sigma * eps`` (the same
-        float32 rows: ``sigma * -eps`` is ``-(sigma * eps)`` exactly), or None when not antithetic.
-        Backends use it to read each pair's noise once (:class:`~torchrl_esrl.modules.networks.Mirrored`)."""
-        if not self.antithetic or self._noise is None:
+    def _asked(self, population: torch.Tensor) -> bool:
+        """Whether ``population`` is the last :meth:`ask`'s, not yet told."""
+        asked = self._population
+        return asked is not None and (population is asked or (population.shape == asked.shape and torch.equal(population, asked)))
+
+    def mirrored(self, population: torch.Tensor) -> Mirrored | None:
+        """``population``, the last :meth:`ask`'s, as mirrored pairs ``mean +- sigma * eps`` (the
+        same float32 rows: ``sigma * -eps`` is ``-(sigma * eps)`` exactly); None when not
+        antithetic or for any other population. Backends use it to read each pair's noise once
+        (:class:`~torchrl_esrl.modules.networks.Mirrored`)."""
+        if not self.antithetic or not self._asked(population):
             return None
         return Mirrored(self._center, self.sigma * self._noise[: self.population_size // 2])
 
@@ -94,25 +103,25 @@ class OpenES:
         """Search-gradient estimate of the expected return w.r.t. the mean (ascent direction)."""
         if self._noise is None:
             raise RuntimeError("OpenES.tell called before ask")
-        returns = torch.as_tensor(returns, dtype=torch.float32).reshape(-1)
-        if returns.numel() != self.population_size:
-            raise ValueError(f"expected {self.population_size} returns, got {returns.numel()}")
-        if not torch.isfinite(returns).all():
-            raise FloatingPointError(f"non-finite episode return in ES generation {self.generation}: {returns.tolist()}")
+        returns = checked_returns(returns, self._population, self.generation, torch.float32)
         if self.fitness_shaping == "centered_ranks":
             weights = centered_ranks(returns)
         else:
             weights = (returns - returns.mean()) / (returns.std() + 1e-8)
         return weights @ self._noise / (self.population_size * self.sigma)
 
-    def tell(self, returns: torch.Tensor) -> torch.Tensor:
-        """One Adam step of the mean along the estimated gradient; returns that gradient."""
+    def tell(self, population: torch.Tensor, returns: torch.Tensor) -> torch.Tensor:
+        """One Adam step of the mean along the gradient estimated from the returns of
+        ``population``, which must be the last :meth:`ask`'s (the estimate uses its noise);
+        returns that gradient."""
+        if self._noise is not None and not self._asked(population):
+            raise ValueError("OpenES.tell: population is not the one the last ask returned (the gradient estimate uses its noise)")
         grad = self.gradient(returns)
         self.optimizer.zero_grad(set_to_none=False)
         # Adam minimises: feed it the negative ascent direction (plus L2 decay on the mean).
         self.mean.grad = -grad + self.weight_decay * self.mean.detach()
         self.optimizer.step()
-        self._noise = None
+        self._noise = self._population = None
         self.generation += 1
         return grad
 

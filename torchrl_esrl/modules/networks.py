@@ -5,12 +5,14 @@ descent, OpenAI-ES searches over its *flat parameter vector*. `flat_parameters`
 and `load_flat_parameters` are the bridge between the two views. Two classes evaluate
 many flat vectors at once: `ModulePopulation` (the reference: the actor module itself,
 through ``torch.func.functional_call``) and `PopulationActor` (one batched numpy forward
-for a whole ES population, for the plain MLP actors of `make_actor`).
+for a whole ES population, for the plain MLP actors of `make_actor`). `describe_mlp` and
+`describe_actor` are the one reading of a network's layers that every hand-written (fast) piece
+decides from.
 """
 from __future__ import annotations
 
 import threading
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import torch
@@ -25,7 +27,9 @@ from torchrl.modules import MLP, TanhModule, ValueOperator
 
 from torchrl_esrl.threads import torch_threads
 
-ACTIVATIONS = {"tanh": nn.Tanh, "relu": nn.ReLU, "elu": nn.ELU}  # the fast pieces compute tanh and ReLU; others hand over to the reference
+ACTIVATIONS = {"tanh": nn.Tanh, "relu": nn.ReLU, "elu": nn.ELU}  # actor.activation, td3.critic_activation
+# The activations the fast pieces compute, by module type (exact types); any other layer hands over to the reference.
+FAST_ACTIVATIONS = {nn.Tanh: "tanh", nn.ReLU: "relu"}
 
 
 def make_actor(
@@ -167,30 +171,87 @@ class ModulePopulation:
         return torch.cat(actions)
 
 
-def _plain_actor_layers(actor) -> list[tuple[int, int]] | None:
-    """``(out_features, in_features)`` of each Linear of a :func:`make_actor` actor whose MLP is
-    Linear layers with one activation type (tanh or ReLU) between them and whose ``TanhModule``
-    does not clamp, or None for any other actor."""
-    if not isinstance(actor, TensorDictSequential) or len(actor.module) != 2:
+@dataclass(frozen=True)
+class LinearLayer:
+    """One ``nn.Linear`` of an MLP and the activation right after it (a name of
+    :data:`FAST_ACTIVATIONS`, or None)."""
+
+    name: str  # the child's name in the Sequential (its parameters' prefix)
+    linear: nn.Linear
+    activation: str | None = None
+
+
+@dataclass(frozen=True)
+class MLPDescription:
+    """What a fast piece needs to reproduce an MLP: its Linear layers in order, each with its
+    bias or not and the activation after it (:func:`describe_mlp`)."""
+
+    layers: tuple[LinearLayer, ...]
+
+    @property
+    def sizes(self) -> list[tuple[int, int]]:
+        """``(out_features, in_features)`` per Linear."""
+        return [(layer.linear.out_features, layer.linear.in_features) for layer in self.layers]
+
+    def plain_refusal(self) -> str | None:
+        """None when every Linear has a bias and an activation sits between every two Linear
+        layers and none after the last (``make_actor``, ``make_critic``), else what differs."""
+        if any(layer.linear.bias is None for layer in self.layers):
+            return "a Linear without bias"
+        if any(layer.activation is None for layer in self.layers[:-1]):
+            return "two Linear layers without an activation between them"
+        if self.layers[-1].activation is not None:
+            return "an activation after the last Linear"
         return None
-    first, tanh_module = actor.module
-    mlp = getattr(first, "module", None)
-    if (
-        not isinstance(tanh_module, TanhModule) or tanh_module.clamp or not isinstance(mlp, nn.Sequential)
-        or list(first.in_keys) != ["observation"] or list(tanh_module.out_keys) != ["action"]
-        or isinstance(getattr(mlp, "out_features", None), (tuple, list, torch.Size))  # a reshaped output
+
+
+def describe_mlp(module: nn.Module) -> MLPDescription | str:
+    """``module`` as an :class:`MLPDescription` when it is an ``nn.Sequential`` (or TorchRL
+    ``MLP``) of ``nn.Linear`` layers, each followed by at most one activation of
+    :data:`FAST_ACTIVATIONS`; else the reason, in a few words (another layer, a reshaped output)."""
+    if type(module) not in (nn.Sequential, MLP):
+        return f"{type(module).__name__}, not nn.Sequential or TorchRL's MLP (its forward may differ)"
+    if isinstance(getattr(module, "out_features", None), (tuple, list, torch.Size)):
+        return "a reshaped output (out_features is a shape)"
+    layers: list[LinearLayer] = []
+    for name, child in module.named_children():
+        if type(child) is nn.Linear:
+            layers.append(LinearLayer(name, child))
+        elif type(child) in FAST_ACTIVATIONS and layers and layers[-1].activation is None:
+            layers[-1] = replace(layers[-1], activation=FAST_ACTIVATIONS[type(child)])
+        elif type(child) in FAST_ACTIVATIONS:
+            return f"{type(child).__name__} not right after a Linear"
+        else:
+            return f"{type(child).__name__} (the fast pieces compute Linear, {', '.join(c.__name__ for c in FAST_ACTIVATIONS)})"
+    return MLPDescription(tuple(layers)) if layers else "no Linear layer"
+
+
+@dataclass(frozen=True)
+class ActorDescription:
+    """A :func:`make_actor` actor as the fast pieces read it: its MLP and its ``TanhModule``."""
+
+    mlp: MLPDescription
+    tanh_module: TanhModule
+
+
+def describe_actor(actor: nn.Module) -> ActorDescription | str:
+    """``actor`` as an :class:`ActorDescription` when it is ``TensorDictModule(MLP, observation)``
+    then ``TanhModule -> action`` with an MLP :func:`describe_mlp` reads; else the reason."""
+    steps = actor.module if type(actor) is TensorDictSequential else ()
+    if not (
+        len(steps) == 2
+        and type(steps[0]) is TensorDictModule
+        and type(steps[1]) is TanhModule
+        and list(steps[0].in_keys) == ["observation"]
+        and list(steps[0].out_keys) == list(steps[1].in_keys)
+        and len(steps[1].in_keys) == 1
+        and list(steps[1].out_keys) == ["action"]
     ):
-        return None
-    children = list(mlp)
-    linears, activations = children[0::2], children[1::2]
-    if (
-        len(children) % 2 != 1
-        or not all(type(m) is nn.Linear for m in linears)
-        or len({type(m) for m in activations}) > 1
-        or not all(type(m) in (nn.Tanh, nn.ReLU) for m in activations)
-    ):
-        return None
-    return [(m.out_features, m.in_features) for m in linears]
+        return "actor is not TensorDictModule(MLP, observation) + TanhModule -> action"
+    mlp = describe_mlp(steps[0].module)
+    if isinstance(mlp, str):
+        return f"actor MLP: {mlp}"
+    return ActorDescription(mlp, steps[1])
 
 
 class PopulationActor:
@@ -211,19 +272,30 @@ class PopulationActor:
     mirrored_pairs = True  # :meth:`mirrored` evaluates OpenAI-ES's pairs
 
     @staticmethod
+    def refusal(actor) -> str | None:
+        """None where this forward computes what ``actor`` computes (a :func:`make_actor` MLP:
+        biased Linear layers with tanh or ReLU between them, squashed by a non-clamping
+        ``TanhModule``), else why not (:func:`describe_actor`)."""
+        description = describe_actor(actor)
+        if isinstance(description, str):
+            return description
+        if description.tanh_module.clamp:
+            return "TanhModule clamps"
+        reason = description.mlp.plain_refusal()
+        return None if reason is None else f"actor MLP: {reason}"
+
+    @staticmethod
     def supports(actor) -> bool:
-        """Whether this forward computes what ``actor`` computes: a :func:`make_actor` MLP of
-        Linear layers with tanh or ReLU between them, squashed by a non-clamping ``TanhModule``."""
-        return _plain_actor_layers(actor) is not None
+        return PopulationActor.refusal(actor) is None
 
     def __init__(self, actor: TensorDictSequential):
-        layers = _plain_actor_layers(actor)
-        if layers is None:
-            raise ValueError(f"PopulationActor computes Linear layers with tanh or ReLU between them only; this actor differs ({_describe(actor)}): use ModulePopulation")
-        mlp, tanh_module = actor[0].module, actor[1]
-        self.layers: list[tuple[int, int]] = layers  # (out_features, in_features) per Linear
-        self.activation: type[nn.Module] | None = type(mlp[1]) if len(mlp) > 1 else None
-        self.act = np.tanh if self.activation is nn.Tanh else _relu
+        reason = self.refusal(actor)
+        if reason is not None:
+            raise ValueError(f"PopulationActor computes biased Linear layers with tanh or ReLU between them only; this actor differs ({reason}: {_describe(actor)}): use ModulePopulation")
+        description = describe_actor(actor)
+        tanh_module = description.tanh_module
+        self.layers: list[tuple[int, int]] = description.mlp.sizes  # (out_features, in_features) per Linear
+        self.activations = [_NUMPY_ACTIVATIONS[layer.activation] for layer in description.mlp.layers[:-1]]  # after each hidden Linear
         self.low = tanh_module.action_low.detach().numpy().astype(np.float32)
         self.high = tanh_module.action_high.detach().numpy().astype(np.float32)
         self.non_trivial = bool(tanh_module.non_trivial)
@@ -253,7 +325,7 @@ class PopulationActor:
         for i, (weight, bias) in enumerate(layers):
             x = np.einsum("poi,pi->po", weight, x) + bias
             if i < last:
-                x = self.act(x)
+                x = self.activations[i](x)
         return torch.from_numpy(self._squash(x))
 
     def mirrored(self, center_layers, offset_layers, observations: np.ndarray) -> np.ndarray:
@@ -277,7 +349,7 @@ class PopulationActor:
             y = np.empty((2, x.shape[1], center_weight.shape[1]), dtype=np.float32)
             np.add(shared[..., 0] + center_bias[0], own[..., 0] + offset_bias, out=y[0])
             np.subtract(shared[..., 1] + center_bias[0], own[..., 1] + offset_bias, out=y[1])
-            x = self.act(y) if i < last else y
+            x = self.activations[i](y) if i < last else y
         return self._squash(x)
 
     def _squash(self, x: np.ndarray) -> np.ndarray:
@@ -307,3 +379,6 @@ def _describe(actor) -> str:
 
 def _relu(x: np.ndarray) -> np.ndarray:
     return np.maximum(x, 0, dtype=x.dtype)
+
+
+_NUMPY_ACTIVATIONS = {"tanh": np.tanh, "relu": _relu}  # PopulationActor's kernels of FAST_ACTIVATIONS

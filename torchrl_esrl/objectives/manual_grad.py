@@ -9,15 +9,14 @@ from __future__ import annotations
 
 import numpy as np
 import torch
-from torch import nn
 from tensordict import TensorDictBase
-from tensordict.nn import TensorDictModule, TensorDictSequential
+from tensordict.nn import TensorDictModule
 from torch.autograd.function import once_differentiable
-from torchrl.modules import MLP, TanhModule, ValueOperator
+from torchrl.modules import MLP, ValueOperator
 from torchrl.objectives import TD3Loss
 from torchrl.objectives.value import TD0Estimator
 
-from torchrl_esrl.modules.networks import squash
+from torchrl_esrl.modules.networks import describe_actor, describe_mlp, squash
 from torchrl_esrl.torchrl_private import (
     detached_qvalue_params, loss_priority_weight, module_hooks, overridden_td3_loss_internals, reduce_loss,
     reweights_or_masks, td3_loss_default_keys,
@@ -48,24 +47,6 @@ class TD3LossQ1Actor(TD3Loss):
         return loss_actor, {"state_action_value_actor": state_action_value.detach()}
 
 
-def _plain_mlp(module: nn.Module):
-    """``[(linear index, activation), ...]`` of an ``nn.Sequential`` (or TorchRL ``MLP``) of biased
-    ``nn.Linear`` layers with ``nn.Tanh``/``nn.ReLU`` between them and none after the last, or None."""
-    if type(module) not in (nn.Sequential, MLP):
-        return None
-    layers = []
-    for name, child in module.named_children():
-        if type(child) is nn.Linear and child.bias is not None:
-            layers.append([name, None])
-        elif type(child) in _ACTIVATIONS and layers and layers[-1][1] is None:
-            layers[-1][1] = _ACTIVATIONS[type(child)]
-        else:
-            return None
-    if not layers or any(act is None for _, act in layers[:-1]) or layers[-1][1] is not None:
-        return None
-    return [(name, act) for name, act in layers]
-
-
 def _tanh(x: torch.Tensor) -> torch.Tensor:
     """Hidden ``tanh`` of the hand-written forwards: numpy's kernel, in place on ``x`` (a fresh layer
     output) where no gradient is recorded; ``torch.tanh`` otherwise.
@@ -81,7 +62,7 @@ def _tanh(x: torch.Tensor) -> torch.Tensor:
     return x
 
 
-_ACTIVATIONS = {nn.Tanh: _tanh, nn.ReLU: torch.relu}
+_ACTIVATIONS = {"tanh": _tanh, "relu": torch.relu, None: None}  # the kernels of FAST_ACTIVATIONS (None: no activation)
 # d activation: (gradient w.r.t. the output, the output) -> gradient w.r.t. the input, as autograd computes it
 _ACTIVATION_BACKWARD = {_tanh: torch.ops.aten.tanh_backward, torch.relu: lambda grad, out: torch.ops.aten.threshold_backward(grad, out, 0)}
 
@@ -213,21 +194,12 @@ class ManualGradTD3Loss(TD3Loss):
         overridden = overridden_td3_loss_internals(type(self), ManualGradTD3Loss)
         if overridden:
             return f"{type(self).__name__} overrides {overridden[0]}"
-        actor, critic = self.actor_network, self.qvalue_network
-        steps = actor.module if type(actor) is TensorDictSequential else ()
-        if not (
-            len(steps) == 2
-            and type(steps[0]) is TensorDictModule
-            and type(steps[1]) is TanhModule
-            and list(steps[0].in_keys) == ["observation"]
-            and list(steps[0].out_keys) == list(steps[1].in_keys)
-            and len(steps[1].in_keys) == 1
-            and list(steps[1].out_keys) == ["action"]
-        ):
-            return "actor is not TensorDictModule(MLP, observation) + TanhModule -> action"
-        actor_mlp = _plain_mlp(steps[0].module)
-        if actor_mlp is None:
-            return "actor MLP is not Linear layers with tanh or ReLU between them"
+        actor, critic = describe_actor(self.actor_network), self.qvalue_network
+        if isinstance(actor, str):
+            return actor
+        reason = actor.mlp.plain_refusal()
+        if reason is not None:
+            return f"actor MLP: {reason}"
         if not (
             type(critic) in (TensorDictModule, ValueOperator)
             and type(critic.module) is MLP  # its forward concatenates the in_keys
@@ -235,10 +207,16 @@ class ManualGradTD3Loss(TD3Loss):
             and list(critic.out_keys) == ["state_action_value"]
         ):
             return "critic is not an MLP over (observation, action) -> state_action_value"
-        critic_mlp = _plain_mlp(critic.module)
-        if critic_mlp is None:
-            return "critic MLP is not Linear layers with tanh or ReLU between them"
-        return _ManualGradLayout(self, actor_mlp, critic_mlp)
+        critic_mlp = describe_mlp(critic.module)
+        reason = critic_mlp if isinstance(critic_mlp, str) else critic_mlp.plain_refusal()
+        if reason is not None:
+            return f"critic MLP: {reason}"
+        return _ManualGradLayout(self, _named_kernels(actor.mlp), _named_kernels(critic_mlp))
+
+
+def _named_kernels(mlp) -> list[tuple[str, object]]:
+    """``[(Linear's name, kernel of the activation after it or None), ...]`` of an MLP description."""
+    return [(layer.name, _ACTIVATIONS[layer.activation]) for layer in mlp.layers]
 
 
 class _CriticLoss(torch.autograd.Function):

@@ -17,13 +17,13 @@ import copy
 from collections.abc import Collection
 
 import torch
-from omegaconf import DictConfig
+from omegaconf import DictConfig, OmegaConf
 from torchrl.objectives import SoftUpdate, TD3Loss
 
 from torchrl_esrl.data.multibuffer import MultiBuffer
 from torchrl_esrl.envs import EnvSpec
 from torchrl_esrl.es.openes import OpenES
-from torchrl_esrl.collectors.backends import default_backend
+from torchrl_esrl.collectors.backends import LOCAL_BACKENDS, resolve_backend
 from torchrl_esrl.collectors.es_collector import ESCollector
 from torchrl_esrl.modules.networks import ModulePopulation, PopulationActor, flat_parameters, make_actor, make_critic
 from torchrl_esrl.algorithm.es_phase import ESPhase
@@ -184,26 +184,25 @@ def es_population(actor, pieces: Collection[str]):
     return PopulationActor if "es_forward" in pieces and PopulationActor.supports(actor) else ModulePopulation
 
 
-def es_backend(cfg: DictConfig, pieces: Collection[str], backend: str) -> str:
-    """``backend`` (``es.backend``, ``ray.worker_backend``) with ``auto`` resolved: the fastest
-    local backend for the env, or the ``gym`` reference without the ``es_physics`` piece."""
-    if backend != "auto":
-        return backend
-    return default_backend(make_env_spec(cfg)) if "es_physics" in pieces else "gym"
+def es_backend(cfg: DictConfig, pieces: Collection[str] | None = None) -> tuple[str, dict]:
+    """The ES collector's backend and its keyword arguments: ``es.backend`` (and, for ``ray``,
+    ``ray.worker_backend``) resolved once (:func:`~torchrl_esrl.collectors.backends.resolve_backend`:
+    ``auto`` is the fastest local backend for the env, or the ``gym`` reference without the
+    ``es_physics`` piece, which also refuses an explicit ``mujoco_batch``); ``mujoco_batch``
+    steps on this job's share of the cores (:func:`~torchrl_esrl.threads.job_cores`)."""
+    spec, fast_physics = make_env_spec(cfg), "es_physics" in _pieces(cfg, pieces)
+    backend = resolve_backend(cfg.es.backend, spec, fast_physics)
+    if backend == "ray":  # offspring evaluated on a Ray cluster, see the `ray` config section
+        kwargs = OmegaConf.to_container(cfg.ray, resolve=True)  # its keys are RayBackend's arguments
+        kwargs["worker_backend"] = resolve_backend(kwargs["worker_backend"], spec, fast_physics, "ray.worker_backend", LOCAL_BACKENDS)
+        return backend, kwargs
+    return backend, {"nthread": job_cores()} if backend == "mujoco_batch" else {}
 
 
 def make_es_collector(cfg: DictConfig, actor, pieces: Collection[str] | None = None) -> ESCollector:
-    """The ES collector on ``es.backend``; ``mujoco_batch`` steps on this job's share of the cores
-    (:func:`~torchrl_esrl.threads.job_cores`)."""
+    """The ES collector on :func:`es_backend`."""
     fast = _pieces(cfg, pieces)
-    backend, backend_kwargs = es_backend(cfg, fast, cfg.es.backend), {}
-    if backend == "ray":  # offspring evaluated on a Ray cluster, see the `ray` config section
-        from torchrl_esrl.collectors.ray_backend import ray_backend_kwargs
-
-        backend_kwargs = ray_backend_kwargs(cfg)
-        backend_kwargs["worker_backend"] = es_backend(cfg, fast, backend_kwargs["worker_backend"])
-    elif backend == "mujoco_batch":
-        backend_kwargs = {"nthread": job_cores()}
+    backend, backend_kwargs = es_backend(cfg, fast)
     actor = cpu_actor(actor)
     return ESCollector(
         make_env_spec(cfg), actor, backend=backend,
@@ -311,7 +310,7 @@ def implementations(cfg: DictConfig, **components) -> dict[str, str]:
     es_collector = components.get("es_collector")
     if isinstance(es_collector, ESCollector):
         population = es_collector.population_actor
-        piece("es_forward", isinstance(population, PopulationActor), "the actor is not Linear layers with tanh or ReLU between them, then TanhModule")
+        piece("es_forward", isinstance(population, PopulationActor), getattr(population, "actor", None) is not None and PopulationActor.refusal(population.actor) or None)
         backend = es_collector.backend
         name = getattr(backend, "worker_backend", backend.name)  # a Ray backend: what its workers run
         piece("es_physics", name == MujocoBatchBackend.name, MujocoBatchBackend.refusal(es_collector.env))
