@@ -18,7 +18,7 @@ import torchrl_esrl  # noqa: F401  registers the typed schema with Hydra's Confi
 
 ROOT = Path(__file__).resolve().parents[1]
 CONF = ROOT / "conf"
-RECIPE_CONFIGS = ("config", "td3", "es", "cem_rl")  # recipes/es_td3.py, td3.py, es.py, cem_rl.py
+RECIPE_CONFIGS = ("config", "td3", "es", "cem_rl", "cem_rl_buffers")  # recipes/es_td3.py, td3.py, es.py, cem_rl.py, cem_rl_buffers.py
 ENVS = (None, *sorted(p.stem for p in (CONF / "env").glob("*.yaml")))  # None: the config's own choice
 EXPERIMENTS = (None, *sorted(p.stem for p in (CONF / "experiment").glob("*.yaml")))
 HYDRA_KEYS = ("callbacks", "job.chdir", "run", "sweep", "job_logging", "runtime.choices")  # what conf/ sets of Hydra's node

@@ -207,7 +207,6 @@ def test_the_old_td3_fast_key_is_a_one_line_config_error_naming_the_new_key(run_
     assert lines[0].startswith("config error: td3.fast: renamed to implementation"), lines
 
 
-@pytest.mark.xfail(strict=True, reason="run/config.py's validate_config does not call collectors.backends.resolve_backend yet: the recipe refuses it, exit 2, once the run directory is made")
 def test_the_fast_physics_under_the_reference_implementation_is_refused_before_the_run(run_recipe, tmp_path):
     """``implementation=reference es.backend=mujoco_batch`` would run the fast physics while the
     pieces line says reference: one line, exit 2, before the run directory is made."""

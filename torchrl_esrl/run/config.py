@@ -190,6 +190,11 @@ def validate_config(cfg) -> None:
         reason = MujocoBatchBackend.refusal(EnvSpec.from_config(cfg.env))
         if reason is not None:
             raise ConfigError(f"es.backend: mujoco_batch cannot play this env exactly as gymnasium would ({reason}) (allowed: auto, gym)")
+    if "mujoco_batch" in (es.backend, cfg.ray.worker_backend) and cfg.implementation != "fast":
+        from torchrl_esrl.collectors.backends import LOCAL_BACKENDS, resolve_backend
+
+        resolve_backend(es.backend, cfg.env.id, fast_physics=False)  # the fast physics under the reference: refused
+        resolve_backend(cfg.ray.worker_backend, cfg.env.id, fast_physics=False, field="ray.worker_backend", allowed=LOCAL_BACKENDS)
     if es.antithetic and es.population_size % 2:
         raise ConfigError(f"es.population_size: {es.population_size} is invalid with es.antithetic=true (allowed: an even positive integer)")
     # MultiBuffer (Section 3.1): K and the capacity against the batch size

@@ -120,8 +120,8 @@ class TD3Config:
     fast: Optional[bool] = renamed("implementation", "implementation=fast, or implementation=reference for td3.fast=false", lambda fast: "fast" if fast else "reference")
     # uniform-random actions first (Fujimoto's start_timesteps); 0: Algorithm 1 acts with the noisy actor from the start
     random_frames: int = number(0, low=0, integer=True)
-    # torch threads of the TD3 phase; null: this job's share of the cores, at most 2 (2 measured fastest on
-    # 2 cores, docs/performance.md; two joblib jobs on 2 cores: 1 each)
+    # torch threads of the TD3 phase; null: this job's share of the cores the process may use (CPU affinity)
+    # divided among the jobs run beside it (torchrl_esrl/threads.py; 2 cores, two joblib jobs: 1 each)
     num_threads: Optional[int] = number(None, low=1, integer=True)
 
 
