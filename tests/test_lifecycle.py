@@ -291,12 +291,14 @@ def test_injected_nan_stops_the_run_and_keeps_the_last_checkpoint(tmp_path, wher
     assert len(read_metrics(tmp_path / "metrics.csv")) == 3
 
 
+# CEM-RL with routed buffers: a good episode by the first generation's end, so the strict readiness rule lets it learn in the second.
+CEM_RL_BUFFERS = ["cem.population_size=6", "cem.start_frames=0", "buffer.batch_size=32", "buffer.min_size=32", "buffer.renormalize=false"]
 # The baselines resume too: a mid-phase checkpoint of TD3; iteration boundaries of ES and CEM-RL.
 BASELINES = [
     ("td3.py", [], "checkpoint-000000000100"),
     ("es.py", ["iterations=4"], "checkpoint-000000000001"),
     ("cem_rl.py", ["iterations=4", "cem.population_size=4", "cem.start_frames=0"], "checkpoint-000000000001"),
-    ("cem_rl_buffers.py", ["iterations=4", "cem.population_size=4", "cem.start_frames=0"], "checkpoint-000000000001"),
+    ("cem_rl_buffers.py", ["iterations=4", *CEM_RL_BUFFERS], "checkpoint-000000000001"),
 ]
 
 
@@ -321,7 +323,7 @@ def test_baseline_killed_then_resumed_gives_the_same_metrics(tmp_path, script, e
 # ---------------------------------------------------------------- runs that survive what users do
 # Every recipe, finished once with the budget above (iterations=2); CEM-RL with a small population
 # that learns from the first generation.
-RECIPES = {"es_td3.py": [], "td3.py": [], "es.py": [], "cem_rl.py": ["cem.population_size=4", "cem.start_frames=0"], "cem_rl_buffers.py": ["cem.population_size=4", "cem.start_frames=0"]}
+RECIPES = {"es_td3.py": [], "td3.py": [], "es.py": [], "cem_rl.py": ["cem.population_size=4", "cem.start_frames=0"], "cem_rl_buffers.py": CEM_RL_BUFFERS}
 CONFIGS = {"es_td3.py": "config", "td3.py": "td3", "es.py": "es", "cem_rl.py": "cem_rl", "cem_rl_buffers.py": "cem_rl_buffers"}
 
 
