@@ -21,7 +21,10 @@ from omegaconf import DictConfig
 
 from torchrl_esrl.es.cem import cem_rl_gradient_steps
 from torchrl_esrl.run.factories import make_actor_critic, make_cem, make_multibuffer, make_es_collector, make_td3, make_train_env
+from torchrl_esrl.run.algorithm_info import AlgorithmInfo
 from torchrl_esrl.run.lifecycle import Run, recipe_main
+
+ALGORITHMS = (AlgorithmInfo("cem_rl", "CEM-RL", "CEM mean", rank=5),)
 
 
 def train(cfg: DictConfig, run: Run) -> dict:

@@ -12,7 +12,10 @@ from omegaconf import DictConfig
 
 from torchrl_esrl.algorithm.es_phase import GenerationReturns
 from torchrl_esrl.run.factories import make_actor_critic, make_es, make_es_collector, make_train_env
+from torchrl_esrl.run.algorithm_info import AlgorithmInfo
 from torchrl_esrl.run.lifecycle import Run, recipe_main
+
+ALGORITHMS = (AlgorithmInfo("es", "OpenAI-ES", "ES mean", rank=6),)
 
 
 def train(cfg: DictConfig, run: Run) -> dict:

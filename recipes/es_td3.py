@@ -30,7 +30,15 @@ from torchrl_esrl.run.factories import (
     make_threshold,
     make_train_env,
 )
+from torchrl_esrl.run.algorithm_info import AlgorithmInfo
 from torchrl_esrl.run.lifecycle import Run, recipe_main
+
+ALGORITHMS = (  # summary.json's ``algorithm`` for buffer.mode=multi/shared x overwrite.mode=hard/soft
+    AlgorithmInfo("es_td3_buffers", "ES-TD3Buffers", "ES mean", rank=0),
+    AlgorithmInfo("es_td3_buffers_soft", "ES-TD3Buffers (soft overwrite)", "ES mean", rank=1),
+    AlgorithmInfo("es_td3_shared", "ES-TD3 (one shared buffer)", "ES mean", rank=2),
+    AlgorithmInfo("es_td3_shared_soft", "ES-TD3 (one shared buffer, soft overwrite)", "ES mean", rank=3),
+)
 
 
 def train(cfg: DictConfig, run: Run) -> dict:

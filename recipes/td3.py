@@ -14,7 +14,10 @@ from torchrl_esrl.algorithm.td3_phase import td3_phase
 from torchrl_esrl.collectors.td3_collector import TD3EnvState
 from torchrl_esrl.modules.networks import flat_parameters
 from torchrl_esrl.run.factories import make_actor_critic, make_multibuffer, make_td3, make_frame_batches, make_train_env
+from torchrl_esrl.run.algorithm_info import AlgorithmInfo
 from torchrl_esrl.run.lifecycle import Run, recipe_main
+
+ALGORITHMS = (AlgorithmInfo("td3", "TD3", "TD3 actor", rank=4),)
 
 
 def train(cfg: DictConfig, run: Run) -> dict:
