@@ -4,9 +4,9 @@
     python recipes/report.py docs/results/runs/paper docs/results/runs/miniature --overview --started started.txt --out overview/
 
 Writes results.csv/.md (Table 1: mean, std, median per env x algorithm, plus the IQM with a 95%
-stratified-bootstrap CI), improvement.csv/.md (probability of improvement of ES-TD3Buffers),
+stratified-bootstrap CI), improvement.csv/.md (probability of improvement of --reference),
 pairwise.csv/.md (exact permutation test of every pair of rows, Holm-corrected per task),
-aggregate.csv/.md and aggregate.png (normalised scores across 2+ tasks), runs.csv/.md (one row per
+aggregate.csv/.md and aggregate.png (scores normalised by --normalise-by across 2+ tasks), runs.csv/.md (one row per
 run), curves_<env>.png (against TD3 and total frames), buffers_<env>.png, es_vs_td3_<env>*.png,
 ratio_sweep_<env>.png and hard_vs_soft_<env>.png; overwrites.csv/.md (per ES-TD3 row, the runs whose ES mean
 was ever overwritten, and the ES mean against its own TD3 actor run by run), summary.md (per task: IQMs,
@@ -16,13 +16,18 @@ timing.md (timing.txt, pieces.txt).
 With --overview, only overview.csv/.md: the paper's Table 1 beside the runs' final returns per
 experiment preset; --started names a file of runs started but not recorded ("<env id> <algorithm>
 <experiment>" a line), whose cells say "running".
+
+Labels and row order: every recipe's ALGORITHMS in this folder (torchrl_esrl/run/algorithm_info.py);
+an algorithm no recipe declares is shown by its name.
 """
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 
-from torchrl_esrl.report import make_overview, make_report
+from torchrl_esrl.report import Algorithms, make_overview, make_report
+from torchrl_esrl.run.algorithm_info import discover
 
 
 def main(argv=None) -> None:
@@ -31,8 +36,23 @@ def main(argv=None) -> None:
     parser.add_argument("--out", default="report", help="output folder (default: report/)")
     parser.add_argument("--overview", action="store_true", help="write only overview.md: the paper's Table 1 beside the runs")
     parser.add_argument("--started", default=None, help="with --overview: runs started and not yet recorded, one '<env id> <algorithm> <experiment>' a line")
+    parser.add_argument("--reference", default="es_td3_buffers", help="the row every other is compared to, at the paper's ratio (default: %(default)s)")
+    parser.add_argument("--normalise-by", default="td3", help="the row whose mean final return is 1 on the aggregate's scale (default: %(default)s)")
+    parser.add_argument("--es-alone", default="es", help="the row a never-overwritten ES mean is checked against, seed by seed (default: %(default)s)")
+    parser.add_argument("--overview-order", default="es_td3_buffers,es_td3_shared,td3,es,cem_rl",
+                        help="with --overview: the algorithms of its first rows, comma-separated; the others follow in row order (default: %(default)s)")
     args = parser.parse_args(argv)
-    report = make_overview(args.paths, args.out, args.started) if args.overview else make_report(args.paths, args.out)
+    # Built here, not at import: discover() imports every recipe of this folder, this one too.
+    infos = discover(Path(__file__).parent)
+    for option, name in (("--reference", args.reference), ("--normalise-by", args.normalise_by), ("--es-alone", args.es_alone)):
+        if name not in infos:
+            print(f"config error: {option}: {name!r} is no recipe's algorithm (allowed: {', '.join(sorted(infos))})", file=sys.stderr)
+            sys.exit(2)
+    algorithms = Algorithms(infos, reference=args.reference, normalise_by=args.normalise_by, es_alone=args.es_alone)
+    if args.overview:
+        report = make_overview(args.paths, args.out, algorithms, args.started, tuple(filter(None, args.overview_order.split(","))))
+    else:
+        report = make_report(args.paths, args.out, algorithms)
     print(Path(report["table_md"]).read_text())
     print(f"{report['runs']} runs -> {args.out}" + (": " + ", ".join(p.name for p in report["figures"]) if report["figures"] else ""))
 

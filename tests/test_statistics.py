@@ -46,6 +46,7 @@ import numpy as np  # noqa: E402
 
 from torchrl_esrl.report import (  # noqa: E402
     MAX_LINES,
+    Algorithms,
     aggregate_table,
     curve_panels,
     find_runs,
@@ -56,8 +57,12 @@ from torchrl_esrl.report import (  # noqa: E402
     pairwise_table,
     permutation_test,
 )
+from torchrl_esrl.run.algorithm_info import AlgorithmInfo, discover  # noqa: E402
 
-RECORDS = Path(__file__).resolve().parents[1] / "docs" / "results" / "runs" / "multibuffer"
+ROOT = Path(__file__).resolve().parents[1]
+RECORDS = ROOT / "docs" / "results" / "runs" / "multibuffer"
+# The recipes' labels and ranks, and the rows recipes/report.py compares against by default.
+ALGORITHMS = Algorithms(discover(ROOT / "recipes"), reference="es_td3_buffers", normalise_by="td3", es_alone="es")
 
 
 def enumerated_p(x, y) -> float:
@@ -104,7 +109,7 @@ def test_pairwise_table_calls_a_difference_only_after_holm():
     runs = [run_record("A", "es_td3_buffers", s, 100.0 + s) for s in range(5)]
     runs += [run_record("A", "td3", s, 10.0 + s) for s in range(5)]  # fully below: p = 2/252
     runs += [run_record("A", "es", s, 10.5 + s) for s in range(5)]  # fully below the first, overlaps td3
-    rows = {(r["algorithm"], r["other_algorithm"]): r for r in pairwise_table(runs)}
+    rows = {(r["algorithm"], r["other_algorithm"]): r for r in pairwise_table(runs, ALGORITHMS)}
     assert len(rows) == 3  # C(3, 2) pairs of one task
     separated = rows[("es_td3_buffers", "td3")]
     assert separated["p_value"] == pytest.approx(2 / 252) and separated["p_holm"] == pytest.approx(3 * 2 / 252) and separated["difference"]
@@ -117,11 +122,11 @@ def test_normalised_scores_put_the_initial_policy_at_zero_and_td3_at_one():
     for env, initial, td3, mine in (("A", -100.0, 100.0, 300.0), ("B", 0.0, 50.0, 25.0)):
         runs += [run_record(env, "td3", s, td3 + (s - 2) * 10, initial=initial) for s in range(5)]  # mean td3
         runs += [run_record(env, "es_td3_buffers", s, mine, initial=initial) for s in range(5)]
-    scores, tasks = normalised_scores(runs)
+    scores, tasks = normalised_scores(runs, ALGORITHMS)
     assert tasks == ["A", "B"]
     assert scores[("es_td3_buffers", "0.5:0.2:0.3")] == pytest.approx(np.tile([2.0, 0.5], (5, 1)))  # (300+100)/200, 25/50
     assert scores[("td3", "")].mean(axis=0) == pytest.approx([1.0, 1.0])
-    rows = {r["algorithm"]: r for r in aggregate_table(runs)}
+    rows = {r["algorithm"]: r for r in aggregate_table(runs, ALGORITHMS)}
     assert rows["es_td3_buffers"]["iqm"] == pytest.approx(1.25)  # the middle half of five 2.0s and five 0.5s
     assert rows["td3"]["iqm_ci_low"] <= rows["td3"]["iqm"] <= rows["td3"]["iqm_ci_high"]
     assert rows["td3"]["probability"] == pytest.approx(0.5)  # task A: always above (1), task B: always below (0)
@@ -137,7 +142,7 @@ def test_mean_band_brackets_the_mean_and_collapses_when_the_seeds_agree():
 def test_curve_panels_hold_at_most_five_lines():
     keys = [("es_td3_buffers", "0.5:0.2:0.3"), ("es_td3_buffers_soft", "0.5:0.2:0.3"), ("es_td3_shared", ""), ("es_td3_shared_soft", ""),
             ("td3", ""), ("cem_rl", ""), ("es", ""), ("other_a", ""), ("other_b", "")]
-    panels = curve_panels(keys)
+    panels = curve_panels(keys, {key for key in keys if key[0].startswith("es_td3")}, ALGORITHMS)
     assert all(1 <= len(rows) <= MAX_LINES for _, rows in panels)
     assert {key for _, rows in panels for key in rows if "/" not in key[0]} == set(keys)  # every row is drawn
 
@@ -151,7 +156,7 @@ def png_size(path) -> tuple[int, int]:
 @pytest.mark.skipif(not RECORDS.exists(), reason="the recorded multibuffer set is not in this checkout")
 def test_report_on_recorded_runs_tests_every_pair_and_aggregates_two_tasks(tmp_path):
     dirs = [RECORDS / env / f"{row}_seed{s}" for env in ("halfcheetah", "walker2d") for row in ("es_td3", "es_td3_shared", "td3") for s in range(5)]
-    report = make_report(dirs, tmp_path)
+    report = make_report(dirs, tmp_path, ALGORITHMS)
     runs = find_runs(dirs)
     pairs = report["pairwise"]
     assert len(pairs) == 2 * 3  # per task, C(3, 2)
@@ -181,7 +186,7 @@ def test_a_row_of_one_run_is_not_tested_and_stays_out_of_the_holm_family():
     assert all(math.isnan(v) for v in permutation_test([1.0], [2.0, 3.0])[:1])
     runs = [run_record("A", "td3", s, 10.0 + s) for s in range(5)] + [run_record("A", "es", s, 100.0 + s) for s in range(5)]
     runs += [run_record("A", "cem_rl", 0, 50.0)]
-    rows = {(r["algorithm"], r["other_algorithm"]): r for r in pairwise_table(runs)}
+    rows = {(r["algorithm"], r["other_algorithm"]): r for r in pairwise_table(runs, ALGORITHMS)}
     assert math.isnan(rows[("td3", "cem_rl")]["p_value"]) and not rows[("td3", "cem_rl")]["difference"]
     assert rows[("td3", "es")]["p_holm"] == pytest.approx(2 / 252)  # the only tested pair: a family of one
 
@@ -201,10 +206,10 @@ def test_a_task_where_td3_stays_at_the_initial_policy_is_left_out_of_the_aggrega
     runs = []
     for env, td3 in (("A", 100.0), ("B", 50.0), ("C", -5.0)):  # C: TD3 below its initial policy (0)
         runs += [run_record(env, "td3", s, td3 + s) for s in range(3)] + [run_record(env, "es_td3_buffers", s, 60.0 + s) for s in range(3)]
-    assert sorted(normalisation(runs)) == ["A", "B"]
-    rows = aggregate_table(runs)
+    assert sorted(normalisation(runs, ALGORITHMS)) == ["A", "B"]
+    rows = aggregate_table(runs, ALGORITHMS)
     assert all(r["tasks"] == 2 for r in rows)
-    write_aggregate_table(rows, runs, tmp_path)
+    write_aggregate_table(rows, runs, tmp_path, ALGORITHMS)
     assert "Left out (no TD3 row, no recorded initial returns, or TD3 not above the initial policy): C." in (tmp_path / "aggregate.md").read_text()
 
 
@@ -213,8 +218,8 @@ from torchrl_esrl.report import overview_rows, overwrite_table, summary_table, w
 from torchrl_esrl.report.statistics import (aggregate_iqm, aggregate_probability_of_improvement, paired_comparison,  # noqa: E402
                                             stratified_interval, weighted_quantiles)
 
-MINIATURE = Path(__file__).resolve().parents[1] / "docs" / "results" / "runs" / "miniature"
-PAPER_RUNS = Path(__file__).resolve().parents[1] / "docs" / "results" / "runs" / "paper"
+MINIATURE = ROOT / "docs" / "results" / "runs" / "miniature"
+PAPER_RUNS = ROOT / "docs" / "results" / "runs" / "paper"
 
 
 def brute_force_quantiles(statistics_of_every_resample) -> list[float]:
@@ -288,14 +293,14 @@ def test_overwrite_table_finds_runs_the_buffers_could_not_reach_and_the_summary_
     runs = [run_record("A", "es", s, 100.0 + s) for s in range(5)] + [run_record("A", "td3", s, 10.0 + s) for s in range(5)]
     runs += [es_td3_record("A", "es_td3_shared", s, 100.0 + s if s < 4 else 120.0, 50.0, 0) for s in range(5)]  # never overwritten
     runs += [es_td3_record("A", "es_td3_buffers", s, 200.0 + s, 200.0 + s if s else 150.0, 0 if s == 2 else 3) for s in range(5)]
-    rows = {r["algorithm"]: r for r in overwrite_table(runs)}
+    rows = {r["algorithm"]: r for r in overwrite_table(runs, ALGORITHMS)}
     shared, buffers = rows["es_td3_shared"], rows["es_td3_buffers"]
     assert (shared["overwritten_runs"], shared["never_overwritten_seeds"], shared["same_as_es_seeds"]) == (0, "0 1 2 3 4", "0 1 2 3")
     assert (buffers["overwritten_runs"], buffers["never_overwritten_seeds"], buffers["same_as_es_seeds"]) == (4, "2", "")
     assert (buffers["es_above_td3_actor"], buffers["es_equal_td3_actor"], buffers["es_below_td3_actor"]) == (1, 4, 0)
     from torchrl_esrl.report import results_table
 
-    (summary,) = summary_table(runs, results_table(runs), pairwise_table(runs), overwrite_table(runs))
+    (summary,) = summary_table(runs, results_table(runs), pairwise_table(runs, ALGORITHMS), overwrite_table(runs, ALGORITHMS), ALGORITHMS)
     differences = summary["differences"].split("; ")
     assert any(d.startswith("ES-TD3 (one shared buffer) > TD3") and "never overwrote its ES mean" in d for d in differences)
     assert any(d.startswith("ES-TD3Buffers 0.5:0.2:0.3 > TD3") and "never" not in d for d in differences)
@@ -307,13 +312,13 @@ def test_overview_cells_without_a_record_hold_no_number(tmp_path):
     runs += [run_record("Walker2d-v5", "td3", s, 400.0 + s) for s in range(5)]
     for r in runs[1:]:
         r["summary"].update(experiment="miniature", td3_frames=80_000, es_frames=0)
-    rows, experiments = overview_rows(runs, {("Walker2d-v5", "td3", "paper")})
+    rows, experiments = overview_rows(runs, ALGORITHMS, {("Walker2d-v5", "td3", "paper")})
     assert experiments == ["paper", "miniature"]
     cells = {(r["env"], r["algorithm"], r["experiment"]): r for r in rows}
     assert cells[("Walker2d-v5", "td3", "paper")]["status"] == "running" and "mean" not in cells[("Walker2d-v5", "td3", "paper")]
     assert cells[("Walker2d-v5", "es_td3_buffers", "miniature")]["status"] == "not run"
     assert cells[("Walker2d-v5", "td3", "miniature")]["runs"] == 5
-    _, md = write_overview(runs, tmp_path, {("Walker2d-v5", "td3", "paper")})
+    _, md = write_overview(runs, tmp_path, ALGORITHMS, {("Walker2d-v5", "td3", "paper")})
     text = md.read_text()
     assert "| Walker2d-v5 (Walker) | ES-TD3Buffers 0.5:0.2:0.3 | 2217 (std 1454, median 1764) | 6639.1: one run (seed 0), 2M TD3 + 109.8M ES frames | not run |" in text
     assert "| Walker2d-v5 (Walker) | TD3 | 3808 (std 339, median 3882) | running | IQM 402.0" in text
@@ -343,7 +348,7 @@ def test_paper_table_1_is_the_papers():
 @pytest.mark.skipif(not (PAPER_RUNS / "walker2d" / "es_td3_seed0").exists(), reason="the paper-budget record is not in this checkout")
 def test_iterations_table_of_the_paper_run_has_every_iteration_under_its_number(tmp_path):
     runs = find_runs([PAPER_RUNS / "walker2d" / "es_td3_seed0"])
-    text = write_iterations(runs, tmp_path).read_text()
+    text = write_iterations(runs, tmp_path, ALGORITHMS).read_text()
     rows = [line for line in text.splitlines() if line.startswith("| ") and line[2].isdigit()]
     assert [int(r.split("|")[1]) for r in rows] == list(range(1, 21))
     assert rows[13].startswith("| 14 | 6236.6 | 5521.3 |") and rows[15].startswith("| 16 | 6465.8 | 6019.6 |")
@@ -352,7 +357,7 @@ def test_iterations_table_of_the_paper_run_has_every_iteration_under_its_number(
 @pytest.mark.skipif(not MINIATURE.exists(), reason="the recorded miniature set is not in this checkout")
 def test_miniature_overwrites_and_paired_counts_match_the_records():
     runs = find_runs([MINIATURE])
-    rows = {(r["env"], r["algorithm"]): r for r in overwrite_table(runs)}
+    rows = {(r["env"], r["algorithm"]): r for r in overwrite_table(runs, ALGORITHMS)}
     assert rows[("Ant-v5", "es_td3_shared")]["overwritten_runs"] == 0 and rows[("Ant-v5", "es_td3_shared")]["same_as_es_seeds"] == "0 1 2 4"
     assert rows[("Ant-v5", "es_td3_buffers")]["never_overwritten_seeds"] == "4"
     assert all(rows[("Swimmer-v5", a)]["never_overwritten_seeds"] == "3" for a in ("es_td3_buffers", "es_td3_shared"))

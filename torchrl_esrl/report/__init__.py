@@ -1,7 +1,9 @@
 """The report over run directories (``recipes/report.py``): Table 1 of the paper per row, the
 statistics of :mod:`~torchrl_esrl.report.statistics`, what the overwrites let the records say about
 the buffers (:mod:`~torchrl_esrl.report.findings`), the figures, and the page's first table, the
-paper's Table 1 beside our records (:mod:`~torchrl_esrl.report.overview`)."""
+paper's Table 1 beside our records (:mod:`~torchrl_esrl.report.overview`). What it knows of the
+algorithms (labels, order, the rows it compares against) is one
+:class:`~torchrl_esrl.report.records.Algorithms`, built by ``recipes/report.py``."""
 from __future__ import annotations
 
 from pathlib import Path
@@ -10,15 +12,15 @@ from torchrl_esrl.report.figures import (MAX_LINES, curve_panels, plot_aggregate
                                          plot_learning_curves, plot_ratio_sweep)
 from torchrl_esrl.report.findings import (overwrite_table, summary_table, write_iterations, write_overwrite_table, write_summary_table,  # noqa: F401
                                           write_timing)
-from torchrl_esrl.report.overview import PAPER_TABLE_1, overview_rows, read_started, write_overview  # noqa: F401
-from torchrl_esrl.report.records import find_runs, label, ratio_text, table_groups  # noqa: F401
+from torchrl_esrl.report.overview import PAPER_TABLE_1, overview_algorithms, overview_rows, read_started, write_overview  # noqa: F401
+from torchrl_esrl.report.records import Algorithms, find_runs, ratio_text, table_groups  # noqa: F401
 from torchrl_esrl.report.statistics import (holm, interquartile_mean, iqm_confidence_interval, mean_band, paired_comparison,  # noqa: F401
                                             permutation_test, probability_of_improvement)
 from torchrl_esrl.report.tables import (aggregate_table, improvement_table, normalisation, normalised_scores, pairwise_table, results_table,  # noqa: F401
                                         write_aggregate_table, write_improvement_table, write_pairwise_table, write_runs_table, write_table)
 
 
-def make_report(paths, out_dir) -> dict:
+def make_report(paths, out_dir, algorithms: Algorithms) -> dict:
     """Everything: the tables (csv + md) and the PNGs; returns what was written."""
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -26,34 +28,35 @@ def make_report(paths, out_dir) -> dict:
     if not runs:
         raise FileNotFoundError(f"no run (summary.json + metrics.csv) under {[str(p) for p in paths]}")
     rows = results_table(runs)
-    csv_path, md_path = write_table(rows, out_dir)
-    write_runs_table(runs, out_dir)
-    improvement = improvement_table(runs)
-    improvement_csv, improvement_md = write_improvement_table(improvement, out_dir)
-    pairwise = pairwise_table(runs)
-    pairwise_csv, pairwise_md = write_pairwise_table(pairwise, out_dir)
-    overwrites = overwrite_table(runs)
+    csv_path, md_path = write_table(rows, out_dir, algorithms)
+    write_runs_table(runs, out_dir, algorithms)
+    improvement = improvement_table(runs, algorithms)
+    improvement_csv, improvement_md = write_improvement_table(improvement, out_dir, algorithms)
+    pairwise = pairwise_table(runs, algorithms)
+    pairwise_csv, pairwise_md = write_pairwise_table(pairwise, out_dir, algorithms)
+    overwrites = overwrite_table(runs, algorithms)
     written = {}
     if overwrites:
-        written["overwrites_csv"], written["overwrites_md"] = write_overwrite_table(overwrites, out_dir)
-    summary = summary_table(runs, rows, pairwise, overwrites)
-    written["summary_md"] = write_summary_table(summary, out_dir)
-    for key, path in (("iterations_md", write_iterations(runs, out_dir)), ("timing_md", write_timing(runs, out_dir))):
+        written["overwrites_csv"], written["overwrites_md"] = write_overwrite_table(overwrites, out_dir, algorithms)
+    summary = summary_table(runs, rows, pairwise, overwrites, algorithms)
+    written["summary_md"] = write_summary_table(summary, out_dir, algorithms)
+    for key, path in (("iterations_md", write_iterations(runs, out_dir, algorithms)), ("timing_md", write_timing(runs, out_dir, algorithms))):
         if path is not None:
             written[key] = path
-    aggregate = aggregate_table(runs)
+    aggregate = aggregate_table(runs, algorithms)
     if aggregate:
-        written["aggregate_csv"], written["aggregate_md"] = write_aggregate_table(aggregate, runs, out_dir)
-    figures = (plot_learning_curves(runs, out_dir) + plot_buffer_sizes(runs, out_dir) + plot_es_vs_td3(runs, out_dir) + plot_ratio_sweep(runs, out_dir)
-               + plot_hard_vs_soft(runs, out_dir) + plot_aggregate(aggregate, sorted(normalisation(runs)), out_dir))
+        written["aggregate_csv"], written["aggregate_md"] = write_aggregate_table(aggregate, runs, out_dir, algorithms)
+    figures = [path for plot in (plot_learning_curves, plot_buffer_sizes, plot_es_vs_td3, plot_ratio_sweep, plot_hard_vs_soft) for path in plot(runs, out_dir, algorithms)]
+    figures += plot_aggregate(aggregate, sorted(normalisation(runs, algorithms)), out_dir, algorithms)
     return {"runs": len(runs), "rows": rows, "table_csv": csv_path, "table_md": md_path, "improvement": improvement, "improvement_csv": improvement_csv,
             "improvement_md": improvement_md, "pairwise": pairwise, "pairwise_csv": pairwise_csv, "pairwise_md": pairwise_md, "overwrites": overwrites,
             "summary": summary, "aggregate": aggregate, **written, "figures": figures}
 
 
-def make_overview(paths, out_dir, started=None) -> dict:
+def make_overview(paths, out_dir, algorithms: Algorithms, started=None, order=()) -> dict:
     """The overview alone (:func:`~torchrl_esrl.report.overview.write_overview`): ``started`` is a
-    file of runs started and not yet recorded (``<env id> <algorithm> <experiment>`` a line)."""
+    file of runs started and not yet recorded (``<env id> <algorithm> <experiment>`` a line);
+    ``order``: the algorithms of its first rows."""
     runs = find_runs(paths)
-    csv_path, md_path = write_overview(runs, out_dir, read_started(started))
+    csv_path, md_path = write_overview(runs, out_dir, algorithms, read_started(started), order)
     return {"runs": len(runs), "overview_csv": csv_path, "overview_md": md_path, "table_md": md_path, "figures": []}

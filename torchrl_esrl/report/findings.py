@@ -1,12 +1,12 @@
 """What the records can and cannot say about the buffers, and the per-task summary.
 
-- ``overwrites``: per ES-TD3 row, how many runs had their ES mean overwritten by the TD3 actor at
+- ``overwrites``: per row whose TD3 actor can overwrite its ES mean, how many runs had their ES mean overwritten by the TD3 actor at
   least once. The buffers feed only the TD3 actor (Algorithm 1), which reaches the returned ES mean
   only through an overwrite: in a run with none, the buffer design could not act on the returned
   policy. Beside it, the returned ES mean against its own TD3 actor, paired by run.
 - ``summary``: per task, the IQM of every row, the overwrite counts and the differences that the
   Holm-corrected permutation tests call, each marked when it rests on a row whose ES mean was
-  never overwritten (then it is a finding about OpenAI-ES, not about the buffers).
+  never overwritten (then it is a finding about ES alone, not about the buffers).
 - ``iterations``: every iteration of each run that is the only run of its row (a single run is
   shown as a run, never as a statistic).
 - ``timing``: the seconds each run's command took (``timing.txt``, ``pieces.txt``).
@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from torchrl_esrl.report.records import ci_text, frames_text, independent_rows, is_es_td3, label, ratio_text, row_order, table_groups, write_csv
+from torchrl_esrl.report.records import Algorithms, ci_text, frames_text, independent_rows, ratio_text, records_overwrites, table_groups, write_csv
 from torchrl_esrl.report.statistics import SIGNIFICANCE, paired_comparison
 
 OVERWRITE_COLUMNS = ("env", "algorithm", "ratio", "runs", "overwritten_runs", "never_overwritten_seeds", "same_as_es_seeds",
@@ -34,18 +34,19 @@ def ever_overwritten(summary: dict, metrics: list[dict]) -> bool:
     return any(row.get("overwritten") is True for row in metrics)
 
 
-def overwrite_table(runs: list[dict]) -> list[dict]:
-    """Per env and ES-TD3 row: runs whose ES mean was ever overwritten; the seeds of the others, and
-    those of them whose final return equals the same seed's OpenAI-ES run exactly; the ES mean
-    against its own TD3 actor, run by run (:func:`paired_comparison`)."""
-    es_final = {(r["summary"]["env"], r["summary"]["seed"]): r["summary"]["final_return"] for r in runs if r["summary"]["algorithm"] == "es"}
+def overwrite_table(runs: list[dict], algorithms: Algorithms) -> list[dict]:
+    """Per env and row whose runs record overwrites (:func:`records_overwrites`): runs whose ES mean
+    was ever overwritten; the seeds of the others, and those of them whose final return equals the
+    same seed's run of ``algorithms.es_alone`` exactly; the ES mean against its own TD3 actor, run
+    by run (:func:`paired_comparison`)."""
+    es_final = {(r["summary"]["env"], r["summary"]["seed"]): r["summary"]["final_return"] for r in runs if r["summary"]["algorithm"] == algorithms.es_alone}
     by_row: dict[tuple[str, str, str], list[dict]] = defaultdict(list)
     for run in runs:
         s = run["summary"]
-        if is_es_td3(s["algorithm"]):
+        if records_overwrites(run):
             by_row[(s["env"], s["algorithm"], ratio_text(s))].append(run)
     rows = []
-    for (env, algorithm, ratio), group in sorted(by_row.items(), key=lambda item: (item[0][0], row_order(item[0][1:]))):
+    for (env, algorithm, ratio), group in sorted(by_row.items(), key=lambda item: (item[0][0], algorithms.row_order(item[0][1:]))):
         group = sorted(group, key=lambda r: r["summary"]["seed"])
         never = [r["summary"]["seed"] for r in group if not ever_overwritten(r["summary"], r["metrics"])]
         same = [r["summary"]["seed"] for r in group
@@ -63,16 +64,16 @@ def _seed_list(seeds: list[str]) -> str:
     return ("seed " if len(seeds) == 1 else "seeds ") + ", ".join(seeds)
 
 
-def overwrite_sentence(row: dict) -> str:
+def overwrite_sentence(row: dict, algorithms: Algorithms) -> str:
     """What the row's runs can and cannot tell about the buffers, from :func:`overwrite_table`."""
-    name, n, k = label(row["algorithm"], row["ratio"]), row["runs"], row["overwritten_runs"]
+    name, n, k = algorithms.label(row["algorithm"], row["ratio"]), row["runs"], row["overwritten_runs"]
     never, same = row["never_overwritten_seeds"].split(), row["same_as_es_seeds"].split()
     text = f"{row['env']}, {name}: the ES mean was overwritten in {k} of {n} runs."
     if not never:
         return text + " In every run the buffers could reach the returned policy through the TD3 actor."
     equal = ""
     if row["has_es_row"]:
-        equal = f" ({len(same)} of {len(never)} with the same final return as OpenAI-ES's run of the same seed, bit for bit)"
+        equal = f" ({len(same)} of {len(never)} with the same final return as {algorithms.label(algorithms.es_alone)}'s run of the same seed, bit for bit)"
     if k == 0:
         return text + (f" TD3 never replaced it{equal}: no run of this row can tell anything about its buffers, and a difference"
                        " this row shows is one of ES alone.")
@@ -80,17 +81,18 @@ def overwrite_sentence(row: dict) -> str:
                    f" only the {k} overwritten run{'s' if k != 1 else ''} can tell anything about them.")
 
 
-def write_overwrite_table(rows: list[dict], out_dir: Path) -> tuple[Path, Path]:
+def write_overwrite_table(rows: list[dict], out_dir: Path, algorithms: Algorithms) -> tuple[Path, Path]:
     """``overwrites.csv`` and ``overwrites.md``: :func:`overwrite_table` and its sentences."""
     csv_path, md_path = out_dir / "overwrites.csv", out_dir / "overwrites.md"
     write_csv(csv_path, OVERWRITE_COLUMNS, [{key: r[key] for key in OVERWRITE_COLUMNS} for r in rows])
-    lines = ["| env | row | runs | ES mean overwritten (runs) | never overwritten (seeds) | of these, final return = OpenAI-ES's (same seed) |"
+    es_alone = algorithms.label(algorithms.es_alone or "")
+    lines = [f"| env | row | runs | ES mean overwritten (runs) | never overwritten (seeds) | of these, final return = {es_alone}'s (same seed) |"
              " ES mean vs its own TD3 actor, by run: above / equal / below |", "|---|---|---:|---:|---|---|---|"]
     for r in rows:
-        same = (r["same_as_es_seeds"] or "none") if r["has_es_row"] else "no OpenAI-ES row"
-        lines.append(f"| {r['env']} | {label(r['algorithm'], r['ratio'])} | {r['runs']} | {r['overwritten_runs']} | {r['never_overwritten_seeds'] or '-'} | "
+        same = (r["same_as_es_seeds"] or "none") if r["has_es_row"] else f"no {es_alone} row"
+        lines.append(f"| {r['env']} | {algorithms.label(r['algorithm'], r['ratio'])} | {r['runs']} | {r['overwritten_runs']} | {r['never_overwritten_seeds'] or '-'} | "
                      f"{same if r['never_overwritten_seeds'] else '-'} | {r['es_above_td3_actor']} / {r['es_equal_td3_actor']} / {r['es_below_td3_actor']} |")
-    lines += [""] + [f"- {overwrite_sentence(r)}" for r in rows]
+    lines += [""] + [f"- {overwrite_sentence(r, algorithms)}" for r in rows]
     lines += [
         "",
         "The buffers feed only the TD3 actor (Algorithm 1); the returned policy is the ES mean, which the TD3 actor reaches",
@@ -104,19 +106,19 @@ def write_overwrite_table(rows: list[dict], out_dir: Path) -> tuple[Path, Path]:
     return csv_path, md_path
 
 
-def _difference_text(pair: dict, unaffected: set) -> str:
+def _difference_text(pair: dict, unaffected: set, algorithms: Algorithms) -> str:
     first, second = (pair["algorithm"], pair["ratio"]), (pair["other_algorithm"], pair["other_ratio"])
     above, below = (first, second) if pair["mean_difference"] > 0 else (second, first)
-    text = f"{label(*above)} > {label(*below)} (Holm p = {pair['p_holm']:.3f})"
-    alone = [label(*key) for key in (above, below) if (pair["env"], *key) in unaffected]
+    text = f"{algorithms.label(*above)} > {algorithms.label(*below)} (Holm p = {pair['p_holm']:.3f})"
+    alone = [algorithms.label(*key) for key in (above, below) if (pair["env"], *key) in unaffected]
     if alone:
         text += f" [{' and '.join(alone)} never overwrote its ES mean: a finding about ES alone, not about buffers]"
     return text
 
 
-def summary_table(runs: list[dict], results: list[dict], pairwise: list[dict], overwrites: list[dict]) -> list[dict]:
-    """Per env: each independent row's IQM and CI (``results``), the overwrite count of each ES-TD3
-    row (``overwrites``) and the differences the corrected tests call (``pairwise``)."""
+def summary_table(runs: list[dict], results: list[dict], pairwise: list[dict], overwrites: list[dict], algorithms: Algorithms) -> list[dict]:
+    """Per env: each independent row's IQM and CI (``results``), the overwrite count of each row
+    that records overwrites (``overwrites``) and the differences the corrected tests call (``pairwise``)."""
     by_key = {(r["env"], r["algorithm"], r["ratio"]): r for r in results}
     counts = {(r["env"], r["algorithm"], r["ratio"]): r for r in overwrites}
     unaffected = {key for key, r in counts.items() if r["overwritten_runs"] == 0}
@@ -124,16 +126,16 @@ def summary_table(runs: list[dict], results: list[dict], pairwise: list[dict], o
     rows = []
     for env in sorted({key[0] for key in groups}):
         pairs = [p for p in pairwise if p["env"] == env]
-        called = [_difference_text(p, unaffected) for p in pairs if p["difference"]]
+        called = [_difference_text(p, unaffected, algorithms) for p in pairs if p["difference"]]
         tested = [p for p in pairs if not math.isnan(p["p_value"])]
         if not called and tested:
             best = min(tested, key=lambda p: p["p_value"])
-            called_text = (f"none (smallest: {label(best['algorithm'], best['ratio'])} vs {label(best['other_algorithm'], best['other_ratio'])}, "
+            called_text = (f"none (smallest: {algorithms.label(best['algorithm'], best['ratio'])} vs {algorithms.label(best['other_algorithm'], best['other_ratio'])}, "
                            f"p = {best['p_value']:.3f}, Holm {best['p_holm']:.3f})")
         else:
             called_text = "; ".join(called) if called else "none tested"
         cells = {}
-        for key in independent_rows(groups, env):
+        for key in independent_rows(groups, env, algorithms):
             r = by_key[(env, *key)]
             cell = f"{r['iqm']:.1f} {ci_text(r['iqm_ci_low'], r['iqm_ci_high'], 1)}" if r["runs"] > 1 else f"{r['mean']:.1f}: one run"
             if (env, *key) in counts:
@@ -143,10 +145,10 @@ def summary_table(runs: list[dict], results: list[dict], pairwise: list[dict], o
     return rows
 
 
-def write_summary_table(rows: list[dict], out_dir: Path) -> Path:
+def write_summary_table(rows: list[dict], out_dir: Path, algorithms: Algorithms) -> Path:
     """``summary.md``: :func:`summary_table`, one line per task."""
-    keys = sorted({key for r in rows for key in r["cells"]}, key=row_order)
-    lines = ["| task | " + " | ".join(label(*key) for key in keys) + f" | differences (Holm p < {SIGNIFICANCE}) |", "|---|" + "---|" * (len(keys) + 1)]
+    keys = sorted({key for r in rows for key in r["cells"]}, key=algorithms.row_order)
+    lines = ["| task | " + " | ".join(algorithms.label(*key) for key in keys) + f" | differences (Holm p < {SIGNIFICANCE}) |", "|---|" + "---|" * (len(keys) + 1)]
     for r in rows:
         lines.append(f"| {r['env']} | " + " | ".join(r["cells"].get(key, "not run") for key in keys) + f" | {r['differences']} |")
     runs = sorted({n for r in rows for n in r["runs"].values()})
@@ -178,7 +180,7 @@ def _value(row: dict, key: str, digits: int = 1) -> str:
     return f"{value:.{digits}f}" if isinstance(value, float) and not math.isnan(value) else ("-" if value in (None, "") else str(value))
 
 
-def write_iterations(runs: list[dict], out_dir: Path) -> Path | None:
+def write_iterations(runs: list[dict], out_dir: Path, algorithms: Algorithms) -> Path | None:
     """``iterations.md``: every iteration of each run of :func:`single_runs`, as ``metrics.csv`` has it."""
     chosen = single_runs(runs)
     if not chosen:
@@ -186,8 +188,8 @@ def write_iterations(runs: list[dict], out_dir: Path) -> Path | None:
     lines = []
     for run in chosen:
         s, rows = run["summary"], run["metrics"]
-        es_td3 = "td3_eval_return" in rows[0]
-        lines += [f"### {s['env']}, {label(s['algorithm'], ratio_text(s))}, seed {s['seed']}: one run", ""]
+        with_actor = "td3_eval_return" in rows[0]
+        lines += [f"### {s['env']}, {algorithms.label(s['algorithm'], ratio_text(s))}, seed {s['seed']}: one run", ""]
         facts = [f"final return {s['final_return']:.1f} ({s.get('final_episodes', '?')} episodes)"]
         if s.get("final_td3_actor_return") is not None:
             facts.append(f"its TD3 actor {s['final_td3_actor_return']:.1f}")
@@ -196,15 +198,15 @@ def write_iterations(runs: list[dict], out_dir: Path) -> Path | None:
         names = {"overwrites": "overwrites", "td3_updates": "TD3 updates", "td3_frames": "TD3 frames", "es_frames": "ES frames"}
         facts += [f"{name} {s[key]:,}" for key, name in names.items() if isinstance(s.get(key), int)]
         lines += ["; ".join(facts) + ".", ""]
-        header = ["iteration", "returned policy"] + (["TD3 actor", "ES mean overwritten"] if es_td3 else [])
+        header = ["iteration", "returned policy"] + (["TD3 actor", "ES mean overwritten"] if with_actor else [])
         header += ["TD3 updates", "ES frames", "training clock (s)", "iteration (s)"]
-        has_buffers = es_td3 and "good_size" in rows[0]
+        has_buffers = with_actor and "good_size" in rows[0]
         header += ["good / bad / noisy"] if has_buffers else []
         lines += ["| " + " | ".join(header) + " |", "|" + "---:|" * len(header)]
         for i, row in enumerate(rows):
             previous = rows[i - 1] if i else {"es_frames": 0, "wall_time_s": 0.0}
             cells = [str(row["iteration"] + 1), _value(row, "eval_return")]
-            cells += [_value(row, "td3_eval_return"), _value(row, "overwritten")] if es_td3 else []
+            cells += [_value(row, "td3_eval_return"), _value(row, "overwritten")] if with_actor else []
             cells += [f"{row['td3_updates']:,}" if isinstance(row.get("td3_updates"), int) else "-", frames_text(row["es_frames"] - previous["es_frames"]),
                       f"{row['wall_time_s']:.0f}", f"{row['wall_time_s'] - previous['wall_time_s']:.0f}"]
             cells += [" / ".join(frames_text(row[k]) for k in ("good_size", "bad_size", "noisy_size"))] if has_buffers else []
@@ -222,7 +224,7 @@ TIMING = re.compile(r"exit (\S+) after (\d+) s")
 PIECE = re.compile(r"piece (\d+) commit (\S+) start (\S+) seconds (\d+) peak_rss_mib (\d+) (.+)")
 
 
-def write_timing(runs: list[dict], out_dir: Path) -> Path | None:
+def write_timing(runs: list[dict], out_dir: Path, algorithms: Algorithms) -> Path | None:
     """``timing.md``: the seconds of each run's command, summed over its attempts (``timing.txt``
     of the experiment scripts; ``pieces.txt`` of ``scripts/paper_run.sh``, with each piece's peak
     resident memory), per row: median, smallest, largest, total."""
@@ -230,7 +232,7 @@ def write_timing(runs: list[dict], out_dir: Path) -> Path | None:
     pieces = []
     for run in runs:
         s = run["summary"]
-        key = (s["env"], label(s["algorithm"], ratio_text(s)))
+        key = (s["env"], algorithms.label(s["algorithm"], ratio_text(s)))
         if (run["dir"] / "timing.txt").exists():
             attempts = TIMING.findall((run["dir"] / "timing.txt").read_text())
             per_row[key].append(sum(int(seconds) for _, seconds in attempts))

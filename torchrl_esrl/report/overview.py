@@ -1,6 +1,8 @@
 """The page's first table: the paper's Table 1 for its four tasks beside what our records hold, per
 budget (``experiment`` in each run's ``summary.json``). A cell without a record says ``running``
-(listed in a file of started runs) or ``not run``; it never holds a number."""
+(listed in a file of started runs) or ``not run``; it never holds a number. Its rows: the paper's
+and every recorded algorithm, in the order given, then by the report's row order (the recipes'
+``ALGORITHMS``), Table 1's rows without a recipe here last."""
 from __future__ import annotations
 
 from collections import defaultdict
@@ -8,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
-from torchrl_esrl.report.records import ci_text, frames_text, label, ratio_text, write_csv
+from torchrl_esrl.report.records import PAPER_RATIO, Algorithms, ci_text, frames_text, ratio_text, write_csv
 from torchrl_esrl.report.statistics import interquartile_mean, iqm_confidence_interval
 
 # es_td3buffers.tex, Table 1 ("Scores achieved on MuJoCo Environments. Baselines as reported in
@@ -21,8 +23,7 @@ PAPER_TABLE_1 = {
     "Walker2d-v5": {"td3": (3808, 339, 3882), "cem": (928, 50, 934), "erl": (2188, 240, 2267), "cem_rl": (4711, 155, 4637), "es_td3_buffers": (2217, 1454, 1764)},
 }
 PAPER_NAMES = {"HalfCheetah-v5": "HalfCheetah", "Ant-v5": "Ant", "Swimmer-v5": "Swimmer", "Walker2d-v5": "Walker"}
-ROWS = ("es_td3_buffers", "es_td3_shared", "td3", "es", "cem_rl", "cem", "erl")  # Table 1's and ours
-OTHER_LABELS = {"cem": "CEM", "erl": "ERL"}  # Table 1's rows without a recipe here
+PAPER_LABELS = {"cem": "CEM", "erl": "ERL"}  # Table 1's rows without a recipe here
 OVERVIEW_COLUMNS = ("env", "algorithm", "experiment", "runs", "seeds", "td3_frames", "es_frames", "mean", "std", "median", "iqm", "iqm_ci_low", "iqm_ci_high", "status")
 
 
@@ -40,18 +41,27 @@ def _budget(summaries: list[dict]) -> str:
     return " + ".join(p for p in parts if p) + " frames" + (" (mean over runs)" if len(summaries) > 1 and len({s.get("es_frames") for s in summaries}) > 1 else "")
 
 
-def overview_rows(runs: list[dict], started=frozenset()) -> tuple[list[dict], list[str]]:
-    """One row per (task, algorithm, experiment): the statistics of the recorded runs at the paper's
-    ratio (or of none: ``status`` ``running`` or ``not run``). Returns the rows and the experiments, the paper's first."""
+def overview_algorithms(runs: list[dict], algorithms: Algorithms, order=(), started=frozenset()) -> list[str]:
+    """The overview's rows: the names in ``order``, then the other algorithms of Table 1, of the
+    runs and of ``started`` by the report's row order, then Table 1's rows without a recipe here."""
+    named = {run["summary"]["algorithm"] for run in runs} | {key[1] for key in started} | {a for paper in PAPER_TABLE_1.values() for a in paper}
+    recipes = sorted(named - set(order) - set(PAPER_LABELS), key=lambda a: algorithms.row_order((a, "")))
+    return list(order) + recipes + [a for a in PAPER_LABELS if a not in order]
+
+
+def overview_rows(runs: list[dict], algorithms: Algorithms, started=frozenset(), order=()) -> tuple[list[dict], list[str]]:
+    """One row per (task, algorithm, experiment) (:func:`overview_algorithms`): the statistics of
+    the recorded runs at the paper's ratio (or of none: ``status`` ``running`` or ``not run``).
+    Returns the rows and the experiments, the paper's first."""
     groups: dict[tuple[str, str, str], list[dict]] = defaultdict(list)
     for run in runs:
         s = run["summary"]
-        if ratio_text(s) in ("", "0.5:0.2:0.3"):
+        if ratio_text(s) in ("", PAPER_RATIO):
             groups[(s["env"], s["algorithm"], s.get("experiment", "?"))].append(s)
     experiments = sorted({key[2] for key in groups} | {key[2] for key in started}, key=lambda e: (e != "paper", e))
     rows = []
     for env in PAPER_TABLE_1:
-        for algorithm in ROWS:
+        for algorithm in overview_algorithms(runs, algorithms, order, started):
             for experiment in experiments:
                 summaries = sorted(groups.get((env, algorithm, experiment), []), key=lambda s: s["seed"])
                 row = {"env": env, "algorithm": algorithm, "experiment": experiment, "runs": len(summaries), "seeds": " ".join(str(s["seed"]) for s in summaries)}
@@ -76,24 +86,26 @@ def _cell(row: dict) -> str:
             f"{row['runs']} runs, {row['budget']}")
 
 
-def write_overview(runs: list[dict], out_dir: Path, started=frozenset()) -> tuple[Path, Path]:
-    """``overview.csv`` and ``overview.md``: :func:`overview_rows` beside :data:`PAPER_TABLE_1`."""
+def write_overview(runs: list[dict], out_dir: Path, algorithms: Algorithms, started=frozenset(), order=()) -> tuple[Path, Path]:
+    """``overview.csv`` and ``overview.md``: :func:`overview_rows` beside :data:`PAPER_TABLE_1`; a
+    row with a ratio is labelled with the paper's."""
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
-    rows, experiments = overview_rows(runs, started)
+    rows, experiments = overview_rows(runs, algorithms, started, order)
+    with_ratio = {run["summary"]["algorithm"] for run in runs if ratio_text(run["summary"])} | {algorithms.reference}
     csv_path, md_path = out_dir / "overview.csv", out_dir / "overview.md"
     write_csv(csv_path, OVERVIEW_COLUMNS, [{key: r.get(key, "") for key in OVERVIEW_COLUMNS} for r in rows])
     cells = {(r["env"], r["algorithm"], r["experiment"]): r for r in rows}
     lines = ["| task | row | paper, Table 1: mean (std, median) | " + " | ".join(f"ours, `experiment={e}`" for e in experiments) + " |",
              "|---|---|---|" + "---|" * len(experiments)]
     for env, paper in PAPER_TABLE_1.items():
-        for algorithm in ROWS:
+        for algorithm in overview_algorithms(runs, algorithms, order, started):
             ours = [cells[(env, algorithm, e)] for e in experiments]
             if algorithm not in paper and all(r["status"] != "recorded" for r in ours):
                 continue
-            name = OTHER_LABELS.get(algorithm) or label(algorithm, "0.5:0.2:0.3" if algorithm == "es_td3_buffers" else "")
+            name = PAPER_LABELS.get(algorithm) or algorithms.label(algorithm, PAPER_RATIO if algorithm in with_ratio else "")
             paper_cell = "{} (std {}, median {})".format(*paper[algorithm]) if algorithm in paper else "not in Table 1"
-            ours_cells = [_cell(r) if algorithm not in OTHER_LABELS else "no recipe here" for r in ours]
+            ours_cells = [_cell(r) if algorithm not in PAPER_LABELS else "no recipe here" for r in ours]
             lines.append(f"| {env} ({PAPER_NAMES[env]}) | {name} | {paper_cell} | " + " | ".join(ours_cells) + " |")
     lines += [
         "",

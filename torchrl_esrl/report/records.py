@@ -3,7 +3,9 @@
 A *run* is a directory holding ``summary.json`` and ``metrics.csv`` as written by
 :class:`torchrl_esrl.run.harness.RunHarness`; any directory above runs (a Hydra multirun, a folder
 of runs) is searched recursively. A row of a table is an (env, algorithm, ratio): runs at different
-good:bad:noisy ratios are different configurations and never pooled.
+good:bad:noisy ratios are different configurations and never pooled. The report knows no algorithm
+by name: labels and row order come from the recipes' ``ALGORITHMS``, and the rows it compares
+against are its parameters (:class:`Algorithms`).
 """
 from __future__ import annotations
 
@@ -11,22 +13,60 @@ import csv
 import json
 import math
 from collections import defaultdict
+from collections.abc import Mapping
+from dataclasses import dataclass, field
 from pathlib import Path
 
+from torchrl_esrl.run.algorithm_info import AlgorithmInfo
 from torchrl_esrl.run.metrics import read_metrics
-from torchrl_esrl.run.plot import ES_TD3_BUFFERS, TD3_ACTOR_SUFFIX, label, ratio_text  # noqa: F401  (the report's names)
+from torchrl_esrl.run.plot import RETURNED_POLICY, TD3_ACTOR, TD3_ACTOR_SUFFIX, label, ratio_text  # noqa: F401  (the report's names)
 
-PAPER_RATIO = "0.5:0.2:0.3"  # the curves show ES-TD3Buffers at this ratio when runs tie
-ROW_ORDER = ("es_td3_buffers", "es_td3_buffers_soft", "es_td3_shared", "es_td3_shared_soft", "td3", "cem_rl", "es")
+PAPER_RATIO = "0.5:0.2:0.3"  # a row with a ratio is shown at this one first, and in the curves when runs tie
+
+
+@dataclass(frozen=True)
+class Algorithms:
+    """What the report knows of the algorithms: each one's :class:`AlgorithmInfo` (the recipes'
+    ``ALGORITHMS``, :func:`~torchrl_esrl.run.algorithm_info.discover`), and the rows it compares
+    against. ``reference``: the row every other is compared to (probability of improvement,
+    aggregate; at :data:`PAPER_RATIO` when its runs have a ratio); ``normalise_by``: the row whose
+    mean final return is 1 on the normalised scale; ``es_alone``: the row whose runs a
+    never-overwritten ES mean is checked against, seed by seed. A role not given is left out."""
+
+    infos: Mapping[str, AlgorithmInfo] = field(default_factory=dict)
+    reference: str | None = None
+    normalise_by: str | None = None
+    es_alone: str | None = None
+
+    def info(self, algorithm: str) -> AlgorithmInfo:
+        """The algorithm's info (of the row's algorithm for a TD3-actor row); a name no recipe
+        declares is its own label, with the default rank."""
+        base = algorithm.partition(TD3_ACTOR_SUFFIX)[0]
+        return self.infos.get(base) or AlgorithmInfo(base, base, RETURNED_POLICY)
+
+    def label(self, algorithm: str, ratio: str = "") -> str:
+        return label(algorithm, ratio, self.infos)
+
+    def row_order(self, key: tuple[str, str]) -> tuple:
+        """Sort key of an (algorithm, ratio) row: the rows at no or the paper's ratio first, then by
+        rank and label (the recipes' ``ALGORITHMS``), other ratios after; each TD3-actor row after its row."""
+        algorithm, ratio = key
+        info = self.info(algorithm)
+        return (ratio not in ("", PAPER_RATIO), info.rank, info.label, ratio, algorithm)
+
+    def reference_row(self, keys) -> tuple[str, str] | None:
+        """The (algorithm, ratio) of ``reference`` among ``keys``: at the paper's ratio or none."""
+        return next((key for key in keys if key[0] == self.reference and key[1] in ("", PAPER_RATIO)), None)
 
 
 def seeds_text(count: int) -> str:
     return f"{count} seed" + ("s" if count != 1 else "")
 
 
-def find_runs(paths) -> list[dict]:
-    """Every run under ``paths``: its summary, its metrics rows and its directory. A run reached
-    twice (overlapping paths, a symlink) counts once."""
+def find_runs(paths, unnamed: str = "unnamed") -> list[dict]:
+    """Every run under ``paths``: its summary, its metrics rows and its directory; a summary that
+    names no algorithm (written before the harness existed) is ``unnamed``'s. A run reached twice
+    (overlapping paths, a symlink) counts once."""
     runs, seen = [], set()
     for root in map(Path, paths):
         for summary_path in sorted(root.rglob("summary.json")):
@@ -35,15 +75,16 @@ def find_runs(paths) -> list[dict]:
                 continue
             seen.add(resolved)
             summary = json.loads(summary_path.read_text())
-            summary.setdefault("algorithm", "es_td3_buffers")  # runs written before the harness existed
+            summary.setdefault("algorithm", unnamed)
             summary.setdefault("final_return", summary.get("final_es_mean_return"))
             runs.append({"summary": summary, "metrics": read_metrics(metrics_path), "dir": summary_path.parent})
     return runs
 
 
 def table_groups(runs: list[dict]) -> dict[tuple[str, str, str], list[dict]]:
-    """The summaries of each table row, keyed ``(env, algorithm, ratio)``; ES-TD3 runs also give a
-    row ``<algorithm>/td3_actor`` whose ``final_return`` is their TD3 actor's."""
+    """The summaries of each table row, keyed ``(env, algorithm, ratio)``; runs with a TD3 actor
+    beside their returned policy (``final_td3_actor_return``) also give a row
+    ``<algorithm>/td3_actor`` whose ``final_return`` is their TD3 actor's."""
     groups: dict[tuple[str, str, str], list[dict]] = defaultdict(list)
     for run in runs:
         summary, ratio = run["summary"], ratio_text(run["summary"])
@@ -54,24 +95,15 @@ def table_groups(runs: list[dict]) -> dict[tuple[str, str, str], list[dict]]:
     return groups
 
 
-def row_order(key: tuple[str, str]) -> tuple:
-    """Sort key of an (algorithm, ratio) row: ES-TD3Buffers at the paper's ratio first, then the
-    other ES-TD3 variants, the baselines, other ratios; each TD3-actor row after its row."""
-    algorithm, ratio = key
-    base = algorithm.partition(TD3_ACTOR_SUFFIX)[0]
-    rank = ROW_ORDER.index(base) if base in ROW_ORDER else len(ROW_ORDER)
-    return (ratio not in ("", PAPER_RATIO), rank, ratio, algorithm)
-
-
-def independent_rows(groups, env: str) -> list[tuple[str, str]]:
+def independent_rows(groups, env: str, algorithms: Algorithms) -> list[tuple[str, str]]:
     """The rows of ``env`` whose runs are their own (the TD3-actor rows reuse their row's runs)."""
-    return sorted(((a, r) for e, a, r in groups if e == env and TD3_ACTOR_SUFFIX not in a), key=row_order)
+    return sorted(((a, r) for e, a, r in groups if e == env and TD3_ACTOR_SUFFIX not in a), key=algorithms.row_order)
 
 
-def is_es_td3(algorithm: str) -> bool:
-    """An ES-TD3 row (three buffers or one, hard or soft overwrite): it returns its ES mean, which
-    its TD3 actor can overwrite."""
-    return algorithm.startswith("es_td3")
+def records_overwrites(run: dict) -> bool:
+    """A run whose TD3 actor can overwrite the ES mean it returns: its summary counts
+    ``overwrites`` or its metrics mark each iteration ``overwritten``."""
+    return "overwrites" in run["summary"] or bool(run["metrics"]) and "overwritten" in run["metrics"][0]
 
 
 def write_csv(path: Path, columns, rows: list[dict]) -> None:

@@ -1,18 +1,20 @@
 """The report's tables over runs: Table 1 of the paper per row (``results``), one row per run
-(``runs``), the probability of improvement of ES-TD3Buffers (``improvement``), the permutation
-test of every pair of rows (``pairwise``) and the aggregate over tasks (``aggregate``).
+(``runs``), the probability of improvement of the reference row (``improvement``), the
+permutation test of every pair of rows (``pairwise``) and the aggregate over tasks (``aggregate``).
+The rows' labels and order, and the rows compared against, are the report's
+:class:`~torchrl_esrl.report.records.Algorithms`.
 
 - ``results``: per env x algorithm, the final return of the returned policy (``final_return``)
   over seeds: mean, std (ddof=1), median (the paper's Table 1) and the interquartile mean with a
   95% bootstrap CI over seeds (Agarwal et al. 2021; :mod:`torchrl_esrl.report.statistics`).
-- ``improvement``: per env, the probability that ES-TD3Buffers (paper ratio) beats each other
+- ``improvement``: per env, the probability that the reference row (paper ratio) beats each other
   row on a run drawn at random from each, with its 95% bootstrap CI. Its own TD3 actor is not such
   a row (the same runs: :mod:`torchrl_esrl.report.findings` pairs them by run).
 - ``pairwise``: per env, every pair of rows: exact permutation test of the difference of mean
   final returns, Holm's correction across the env's pairs; a difference is called one only when
   the corrected p < 0.05.
-- ``aggregate`` (2+ envs with a TD3 row): rliable's aggregate IQM and probability of improvement
-  on scores normalised per env as (final - random) / (TD3 - random).
+- ``aggregate`` (2+ envs with a ``normalise_by`` row): rliable's aggregate IQM and probability of
+  improvement on scores normalised per env as (final - random) / (that row - random).
 """
 from __future__ import annotations
 
@@ -22,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-from torchrl_esrl.report.records import (PAPER_RATIO, TD3_ACTOR_SUFFIX, ci_text, independent_rows, label, number_text, ratio_text, row_order,
+from torchrl_esrl.report.records import (PAPER_RATIO, TD3_ACTOR_SUFFIX, Algorithms, ci_text, independent_rows, number_text, ratio_text,
                                          table_groups, write_csv)
 from torchrl_esrl.report.statistics import (BOOTSTRAP_DRAWS, SIGNIFICANCE, _rliable, aggregate_iqm, aggregate_probability_of_improvement, bootstrap_method, holm, interquartile_mean, iqm_confidence_interval,
                                             permutation_test, probability_of_improvement, stratified_interval)
@@ -61,7 +63,7 @@ def results_table(runs: list[dict]) -> list[dict]:
     return rows
 
 
-def write_table(rows: list[dict], out_dir: Path) -> tuple[Path, Path]:
+def write_table(rows: list[dict], out_dir: Path, algorithms: Algorithms) -> tuple[Path, Path]:
     """``results.csv`` and ``results.md`` (Table 1 layout: env x algorithm, mean / std / median)."""
     csv_path, md_path = out_dir / "results.csv", out_dir / "results.md"
     write_csv(csv_path, TABLE_COLUMNS, rows)
@@ -71,7 +73,7 @@ def write_table(rows: list[dict], out_dir: Path) -> tuple[Path, Path]:
     ]
     for r in rows:
         ci = ci_text(r["iqm_ci_low"], r["iqm_ci_high"], 1)
-        lines.append(f"| {r['env']} | {label(r['algorithm'], r['ratio'])} | {r['runs']} | {r['td3_frames']} | {r['es_frames']} | {r['mean']:.1f} | {number_text(r['std'], 1)} | {r['median']:.1f} | {r['iqm']:.1f} {ci} |")
+        lines.append(f"| {r['env']} | {algorithms.label(r['algorithm'], r['ratio'])} | {r['runs']} | {r['td3_frames']} | {r['es_frames']} | {r['mean']:.1f} | {number_text(r['std'], 1)} | {r['median']:.1f} | {r['iqm']:.1f} {ci} |")
     lines += [
         "",
         "Final return: deterministic evaluation of the policy each algorithm returns (ES-TD3: the ES mean;",
@@ -89,16 +91,17 @@ def write_table(rows: list[dict], out_dir: Path) -> tuple[Path, Path]:
 IMPROVEMENT_COLUMNS = ("env", "algorithm", "ratio", "other_algorithm", "other_ratio", "runs", "other_runs", "probability", "ci_low", "ci_high")
 
 
-def improvement_table(runs: list[dict], reference: tuple[str, str] = ("es_td3_buffers", PAPER_RATIO)) -> list[dict]:
-    """Per env: probability of improvement of ``reference`` (algorithm, ratio) over every other
-    row of the results table but the reference's own TD3 actor (the same runs: paired, not two
-    samples), with its 95% bootstrap CI. Envs without reference runs give no rows."""
+def improvement_table(runs: list[dict], algorithms: Algorithms) -> list[dict]:
+    """Per env: probability of improvement of the reference row (``algorithms.reference`` at the
+    paper's ratio) over every other row of the results table but the reference's own TD3 actor (the
+    same runs: paired, not two samples), with its 95% bootstrap CI. Envs without reference runs give no rows."""
     groups = table_groups(runs)
     rows = []
     for env in sorted({key[0] for key in groups}):
-        mine = groups.get((env, *reference))
-        if not mine:
+        reference = algorithms.reference_row((a, r) for e, a, r in groups if e == env)
+        if reference is None:
             continue
+        mine = groups[(env, *reference)]
         x = [s["final_return"] for s in mine]
         for (other_env, algorithm, ratio), summaries in sorted(groups.items()):
             if other_env != env or (algorithm, ratio) in (reference, (reference[0] + TD3_ACTOR_SUFFIX, reference[1])):
@@ -109,17 +112,18 @@ def improvement_table(runs: list[dict], reference: tuple[str, str] = ("es_td3_bu
     return rows
 
 
-def write_improvement_table(rows: list[dict], out_dir: Path) -> tuple[Path, Path]:
-    """``improvement.csv`` and ``improvement.md``: P(ES-TD3Buffers > row) per env, with CI."""
+def write_improvement_table(rows: list[dict], out_dir: Path, algorithms: Algorithms) -> tuple[Path, Path]:
+    """``improvement.csv`` and ``improvement.md``: P(reference > row) per env, with CI."""
     csv_path, md_path = out_dir / "improvement.csv", out_dir / "improvement.md"
     write_csv(csv_path, IMPROVEMENT_COLUMNS, rows)
-    lines = ["| env | P(ES-TD3Buffers > row) | row | runs (ES-TD3Buffers / row) | 95% CI |", "|---|---:|---|---|---|"]
+    mine = algorithms.label(algorithms.reference or "")
+    lines = [f"| env | P({mine} > row) | row | runs ({mine} / row) | 95% CI |", "|---|---:|---|---|---|"]
     for r in rows:
         ci = ci_text(r["ci_low"], r["ci_high"], 2)
-        lines.append(f"| {r['env']} | {r['probability']:.2f} | {label(r['other_algorithm'], r['other_ratio'])} | {r['runs']} / {r['other_runs']} | {ci} |")
+        lines.append(f"| {r['env']} | {r['probability']:.2f} | {algorithms.label(r['other_algorithm'], r['other_ratio'])} | {r['runs']} / {r['other_runs']} | {ci} |")
     lines += [
         "",
-        f"Probability of improvement (Agarwal et al. 2021, rliable): the chance that a run of ES-TD3Buffers {PAPER_RATIO}",
+        f"Probability of improvement (Agarwal et al. 2021, rliable): the chance that a run of {mine} {PAPER_RATIO}",
         "ends with a higher final return than a run of the row, ties counting half; 0.5 = no difference.",
         f"CIs: 95% percentile bootstrap over the two rows' runs ({_methods(r['runs'] for r in rows)} of each row, every pair of resamples).",
         "A difference is called one only by the Holm-corrected permutation tests of pairwise.md, not by a CI here. The returned",
@@ -133,7 +137,7 @@ PAIRWISE_COLUMNS = ("env", "algorithm", "ratio", "other_algorithm", "other_ratio
                     "relabelings", "exact", "p_value", "p_holm", "difference")
 
 
-def pairwise_table(runs: list[dict]) -> list[dict]:
+def pairwise_table(runs: list[dict], algorithms: Algorithms) -> list[dict]:
     """Per env, every pair of rows (TD3-actor rows left out: same runs as their row): the
     permutation test of :func:`permutation_test` on the final returns, and Holm's correction
     across that env's tested pairs (a row of one run is not tested: NaN). ``difference`` is True
@@ -141,7 +145,7 @@ def pairwise_table(runs: list[dict]) -> list[dict]:
     groups = table_groups(runs)
     rows = []
     for env in sorted({key[0] for key in groups}):
-        keys = independent_rows(groups, env)
+        keys = independent_rows(groups, env, algorithms)
         env_rows = []
         for i, first in enumerate(keys):
             for second in keys[i + 1:]:
@@ -161,7 +165,7 @@ def pairwise_table(runs: list[dict]) -> list[dict]:
     return rows
 
 
-def write_pairwise_table(rows: list[dict], out_dir: Path) -> tuple[Path, Path]:
+def write_pairwise_table(rows: list[dict], out_dir: Path, algorithms: Algorithms) -> tuple[Path, Path]:
     """``pairwise.csv`` and ``pairwise.md``: the permutation tests of :func:`pairwise_table`."""
     csv_path, md_path = out_dir / "pairwise.csv", out_dir / "pairwise.md"
     write_csv(csv_path, PAIRWISE_COLUMNS, rows)
@@ -171,7 +175,7 @@ def write_pairwise_table(rows: list[dict], out_dir: Path) -> tuple[Path, Path]:
             p_text, holm_text = "not tested (one run)", "-"
         else:
             p_text, holm_text = f"{r['p_value']:.4f}" + ("" if r["exact"] else " (random relabelings)"), f"{r['p_holm']:.4f}"
-        lines.append(f"| {r['env']} | {label(r['algorithm'], r['ratio'])} | {label(r['other_algorithm'], r['other_ratio'])} | {r['runs']} / {r['other_runs']} | "
+        lines.append(f"| {r['env']} | {algorithms.label(r['algorithm'], r['ratio'])} | {algorithms.label(r['other_algorithm'], r['other_ratio'])} | {r['runs']} / {r['other_runs']} | "
                      f"{r['mean_difference']:.1f} | {p_text} | {holm_text} | {'**yes**' if r['difference'] else 'no'} |")
     families = defaultdict(int)
     for r in rows:
@@ -193,54 +197,57 @@ def write_pairwise_table(rows: list[dict], out_dir: Path) -> tuple[Path, Path]:
 AGGREGATE_COLUMNS = ("algorithm", "ratio", "tasks", "runs_per_task", "iqm", "iqm_ci_low", "iqm_ci_high", "probability", "probability_ci_low", "probability_ci_high")
 
 
-def normalisation(runs: list[dict]) -> dict[str, dict]:
-    """Per env with a TD3 row and recorded initial returns: ``random``, the mean ``initial_return``
-    over every run of the env (the policies as built, before training), and ``td3``, the mean final
-    return of the TD3 row. An env where TD3 does not end above ``random`` has no normalisation."""
+def normalisation(runs: list[dict], algorithms: Algorithms) -> dict[str, dict]:
+    """Per env with a ``normalise_by`` row (without a ratio) and recorded initial returns:
+    ``random``, the mean ``initial_return`` over every run of the env (the policies as built, before
+    training), and ``baseline``, the mean final return of that row. An env where it does not end
+    above ``random`` has no normalisation."""
     groups = table_groups(runs)
     out = {}
     for env in sorted({key[0] for key in groups}):
-        td3 = groups.get((env, "td3", ""))
+        baseline = groups.get((env, algorithms.normalise_by, ""))
         initial = [run["summary"]["initial_return"] for run in runs if run["summary"]["env"] == env and run["summary"].get("initial_return") is not None]
-        if not td3 or not initial:
+        if not baseline or not initial:
             continue
-        random, reference = float(np.mean(initial)), float(np.mean([s["final_return"] for s in td3]))
+        random, reference = float(np.mean(initial)), float(np.mean([s["final_return"] for s in baseline]))
         if reference > random:
-            out[env] = {"random": random, "td3": reference, "runs": len(initial)}
+            out[env] = {"random": random, "baseline": reference, "runs": len(initial)}
     return out
 
 
-def normalised_scores(runs: list[dict]) -> tuple[dict[tuple[str, str], np.ndarray], list[str]]:
-    """(row -> normalised final returns, runs x tasks; tasks): score = (final - random) / (td3 -
-    random) per task (:func:`normalisation`), 0 = the initial policy, 1 = TD3's mean. A row enters
-    when it has runs on every normalised task; its runs are the seeds it has on all of them."""
-    norms = normalisation(runs)
+def normalised_scores(runs: list[dict], algorithms: Algorithms) -> tuple[dict[tuple[str, str], np.ndarray], list[str]]:
+    """(row -> normalised final returns, runs x tasks; tasks): score = (final - random) / (baseline
+    - random) per task (:func:`normalisation`), 0 = the initial policy, 1 = the ``normalise_by``
+    row's mean. A row enters when it has runs on every normalised task; its runs are the seeds it
+    has on all of them."""
+    norms = normalisation(runs, algorithms)
     tasks = sorted(norms)
     groups = table_groups(runs)
     scores = {}
     keys = {(a, r) for e, a, r in groups if TD3_ACTOR_SUFFIX not in a}
-    for key in sorted(keys, key=row_order):
+    for key in sorted(keys, key=algorithms.row_order):
         by_task = [{s["seed"]: s["final_return"] for s in groups.get((env, *key), [])} for env in tasks]
         seeds = sorted(set.intersection(*(set(d) for d in by_task))) if by_task else []
         if seeds:
-            scores[key] = np.array([[(d[seed] - norms[env]["random"]) / (norms[env]["td3"] - norms[env]["random"]) for env, d in zip(tasks, by_task)] for seed in seeds])
+            scores[key] = np.array([[(d[seed] - norms[env]["random"]) / (norms[env]["baseline"] - norms[env]["random"]) for env, d in zip(tasks, by_task)] for seed in seeds])
     return scores, tasks
 
 
-def aggregate_table(runs: list[dict], reference: tuple[str, str] = ("es_td3_buffers", PAPER_RATIO)) -> list[dict]:
+def aggregate_table(runs: list[dict], algorithms: Algorithms) -> list[dict]:
     """Across tasks (2 or more normalised ones): per row, rliable's aggregate IQM of the normalised
-    scores with its 95% stratified-bootstrap CI, and the probability that ``reference`` improves on
-    the row (rliable: the mean over tasks of the per-task probability), with its CI."""
-    scores, tasks = normalised_scores(runs)
+    scores with its 95% stratified-bootstrap CI, and the probability that the reference row improves
+    on the row (rliable: the mean over tasks of the per-task probability), with its CI."""
+    scores, tasks = normalised_scores(runs, algorithms)
     if len(tasks) < 2:
         return []
     _, metrics = _rliable()
+    reference = algorithms.reference_row(scores)
     rows = []
     for key, matrix in scores.items():
         iqm = float(metrics.aggregate_iqm(matrix))
         _, low, high = stratified_interval([matrix], aggregate_iqm)
         probability, p_low, p_high = (math.nan,) * 3
-        if key != reference and reference in scores:
+        if reference is not None and key != reference:
             mine = scores[reference]
             probability = float(metrics.probability_of_improvement(mine, matrix))
             if len(mine) > 1 and len(matrix) > 1:
@@ -250,30 +257,31 @@ def aggregate_table(runs: list[dict], reference: tuple[str, str] = ("es_td3_buff
     return rows
 
 
-def write_aggregate_table(rows: list[dict], runs: list[dict], out_dir: Path) -> tuple[Path, Path]:
+def write_aggregate_table(rows: list[dict], runs: list[dict], out_dir: Path, algorithms: Algorithms) -> tuple[Path, Path]:
     """``aggregate.csv`` and ``aggregate.md``: :func:`aggregate_table` and the normalisation used."""
     csv_path, md_path = out_dir / "aggregate.csv", out_dir / "aggregate.md"
     write_csv(csv_path, AGGREGATE_COLUMNS, rows)
-    norms = normalisation(runs)
+    norms = normalisation(runs, algorithms)
     tasks = ", ".join(sorted(norms))
+    mine, baseline = algorithms.label(algorithms.reference or ""), algorithms.label(algorithms.normalise_by or "")
     lines = [f"Across {len(norms)} tasks ({tasks}), normalised final returns:", "",
-             "| row | runs per task | aggregate IQM [95% CI] | P(ES-TD3Buffers > row) [95% CI] |", "|---|---:|---|---|"]
+             f"| row | runs per task | aggregate IQM [95% CI] | P({mine} > row) [95% CI] |", "|---|---:|---|---|"]
     for r in rows:
         probability = "" if math.isnan(r["probability"]) else f"{r['probability']:.2f} {ci_text(r['probability_ci_low'], r['probability_ci_high'], 2)}"
-        lines.append(f"| {label(r['algorithm'], r['ratio'])} | {r['runs_per_task']} | {r['iqm']:.2f} {ci_text(r['iqm_ci_low'], r['iqm_ci_high'], 2)} | {probability} |")
-    lines += ["", "| task | random (mean initial return) | TD3 (mean final return) |", "|---|---:|---:|"]
-    lines += [f"| {env} | {n['random']:.1f} | {n['td3']:.1f} |" for env, n in sorted(norms.items())]
+        lines.append(f"| {algorithms.label(r['algorithm'], r['ratio'])} | {r['runs_per_task']} | {r['iqm']:.2f} {ci_text(r['iqm_ci_low'], r['iqm_ci_high'], 2)} | {probability} |")
+    lines += ["", f"| task | random (mean initial return) | {baseline} (mean final return) |", "|---|---:|---:|"]
+    lines += [f"| {env} | {n['random']:.1f} | {n['baseline']:.1f} |" for env, n in sorted(norms.items())]
     left_out = sorted({run["summary"]["env"] for run in runs} - set(norms))
     if left_out:
-        lines += ["", f"Left out (no TD3 row, no recorded initial returns, or TD3 not above the initial policy): {', '.join(left_out)}."]
+        lines += ["", f"Left out (no {baseline} row, no recorded initial returns, or {baseline} not above the initial policy): {', '.join(left_out)}."]
     lines += [
         "",
-        "Normalised score = (final return - random) / (TD3 - random), per task: 0 is the policy as built (the mean of",
-        "every run's `initial_return`, the untrained actor evaluated on the final episodes), 1 is the TD3 baseline's mean",
+        f"Normalised score = (final return - random) / ({baseline} - random), per task: 0 is the policy as built (the mean of",
+        f"every run's `initial_return`, the untrained actor evaluated on the final episodes), 1 is the {baseline} baseline's mean",
         "final return. There are no published random and expert scores for these tasks at this budget; this scale puts",
-        "every task's untrained start and its TD3 at the same two points, so a row's score says how far it got beyond",
-        "the start relative to TD3 at the same TD3 frames. Aggregate IQM: interquartile mean over all runs x tasks;",
-        "probability of improvement: the mean over tasks of P(a run of ES-TD3Buffers ends above a run of the row);",
+        f"every task's untrained start and its {baseline} at the same two points, so a row's score says how far it got beyond",
+        f"the start relative to {baseline} at the same TD3 frames. Aggregate IQM: interquartile mean over all runs x tasks;",
+        f"probability of improvement: the mean over tasks of P(a run of {mine} ends above a run of the row);",
         f"CIs: stratified percentile bootstrap (runs resampled within each task, as rliable's), {BOOTSTRAP_DRAWS:,} random resamples.",
     ]
     md_path.write_text("\n".join(lines) + "\n")
@@ -286,14 +294,14 @@ RUN_COLUMNS = ("env", "algorithm", "ratio", "seed", "final_return", "final_td3_a
 
 def first_td3_update(metrics: list[dict]) -> int | str:
     """The iteration (from 1) whose row first counts TD3 updates: when TD3 started learning,
-    which in ES-TD3Buffers waits for every buffer to hold K (Algorithm 1). ``"never"`` when no
+    which with three buffers waits for every buffer to hold K (Algorithm 1). ``"never"`` when no
     row counts one; ``""`` for a run that logs no ``td3_updates``."""
     if not metrics or "td3_updates" not in metrics[0]:
         return ""
     return next((i + 1 for i, row in enumerate(metrics) if row["td3_updates"]), "never")
 
 
-def write_runs_table(runs: list[dict], out_dir: Path) -> tuple[Path, Path]:
+def write_runs_table(runs: list[dict], out_dir: Path, algorithms: Algorithms) -> tuple[Path, Path]:
     """``runs.csv`` and ``runs.md``: one row per run (seed), the numbers behind each table row."""
     rows = []
     for run in runs:
@@ -315,7 +323,7 @@ def write_runs_table(runs: list[dict], out_dir: Path) -> tuple[Path, Path]:
         overwrites = r["overwrites"] if r["overwrites"] != "" else "-"
         wall = number(r["wall_time_s"] / 60 if isinstance(r["wall_time_s"], (int, float)) else None)
         lines.append(
-            f"| {r['env']} | {label(r['algorithm'], r['ratio'])} | {r['seed']} | {number(r['final_return'])} | "
+            f"| {r['env']} | {algorithms.label(r['algorithm'], r['ratio'])} | {r['seed']} | {number(r['final_return'])} | "
             f"{number(r['final_td3_actor_return'])} | {overwrites} | {r['td3_frames']} | {r['es_frames']} | "
             f"{r['td3_updates'] if r['td3_updates'] != '' else '-'} | {r['first_td3_update'] or '-'} | {wall} |"
         )

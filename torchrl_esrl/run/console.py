@@ -11,14 +11,8 @@ from pathlib import Path
 
 from omegaconf import DictConfig, OmegaConf
 
-# The policy each algorithm returns (summary.json's ``final_return``), in words.
-RETURNED = {
-    "es_td3_buffers": "ES mean",
-    "es_td3_shared": "ES mean",
-    "td3": "TD3 actor",
-    "es": "ES mean",
-    "cem_rl": "CEM mean",
-}
+from torchrl_esrl.run.algorithm_info import AlgorithmInfo
+from torchrl_esrl.run.plot import RETURNED_POLICY, TD3_ACTOR
 
 
 def print_config(cfg: DictConfig) -> None:
@@ -29,14 +23,14 @@ def print_config(cfg: DictConfig) -> None:
 
 def returns_text(row: dict, initial_return: float | None) -> str:
     """The returns of a ``metrics.csv`` row in words: the returned policy, then each learner's."""
-    learners = "".join(f", {name} {row[key]:.1f}" for name, key in (("TD3 actor", "td3_eval_return"), ("ES mean", "es_eval_return")) if key in row)
+    learners = "".join(f", {name} {row[key]:.1f}" for name, key in ((TD3_ACTOR, "td3_eval_return"), ("ES mean", "es_eval_return")) if key in row)
     initial = f" (initial {initial_return:.1f})" if initial_return is not None else ""
     return f"return {row['eval_return']:.1f}{learners}{initial}"
 
 
 def iteration_line(row: dict, iterations: int, initial_return: float | None) -> str:
     """One plain line for a finished iteration (a log that is not a terminal): iteration, frames,
-    returns, the overwrite decision (ES-TD3Buffers) and the elapsed time."""
+    returns, the overwrite decision (a run whose metrics record one) and the elapsed time."""
     seconds = int(row["wall_time_s"])
     parts = [
         f"iteration {row['iteration'] + 1}/{iterations}",
@@ -50,15 +44,15 @@ def iteration_line(row: dict, iterations: int, initial_return: float | None) -> 
     return " | ".join(parts)
 
 
-def final_lines(summary: dict, run_dir: str | Path) -> str:
-    """The last lines of a run: returns of the returned policy, of the TD3 actor (ES-TD3), of the
-    initial policy, whether the ES mean was overwritten, and where the files and the plot are."""
+def final_lines(summary: dict, run_dir: str | Path, info: AlgorithmInfo | None = None) -> str:
+    """The last lines of a run: returns of the returned policy (named by ``info``, the recipe's),
+    of the TD3 actor (a run that records one beside it), of the initial policy, whether the ES mean
+    was overwritten, and where the files and the plot are."""
     run_dir = Path(run_dir)
     episodes = summary["final_episodes"]
-    returned = RETURNED.get(summary["algorithm"].removesuffix("_soft"), "returned policy")  # soft overwrite: the same policy
-    rows = [(f"returned policy ({returned})", summary["final_return"])]
+    rows = [(f"{RETURNED_POLICY} ({info.returned})" if info else RETURNED_POLICY, summary["final_return"])]
     if "final_td3_actor_return" in summary:
-        rows.append(("TD3 actor", summary["final_td3_actor_return"]))
+        rows.append((TD3_ACTOR, summary["final_td3_actor_return"]))
     if summary.get("initial_return") is not None:
         rows.append(("initial policy (before training)", summary["initial_return"]))
     width = max(len(name) for name, _ in rows)

@@ -150,6 +150,6 @@ class RunHarness:
         if self.pieces:
             summary["pieces"] = self.pieces
         summary["wall_time_s"] = self.wall_time_s
-        plot_run(self.run_dir, summary)  # learning_curve.png
+        plot_run(self.run_dir, summary, info=self.info)  # learning_curve.png
         write_json(self.run_dir / "summary.json", summary)  # last, atomically: a run with a summary has finished
         return summary

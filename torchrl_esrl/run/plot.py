@@ -1,45 +1,41 @@
 """One run's learning curve (``learning_curve.png``, written by every recipe at its end) and what
-the report's figures share with it: the display names of the algorithms, matplotlib on the
-file-only Agg backend, and the panel of one run's TD3 actor against its ES mean."""
+the report's figures share with it: the display names of the algorithms (each recipe's
+:class:`~torchrl_esrl.run.algorithm_info.AlgorithmInfo`), matplotlib on the file-only Agg backend,
+and the panel of one run's TD3 actor against its ES mean."""
 from __future__ import annotations
 
 import json
+from collections.abc import Mapping
 from pathlib import Path
 
+from torchrl_esrl.run.algorithm_info import AlgorithmInfo
 from torchrl_esrl.run.metrics import read_metrics
 
-ALGORITHM_LABELS = {
-    "es_td3_buffers": "ES-TD3Buffers",
-    "es_td3_shared": "ES-TD3 (one shared buffer)",
-    "td3": "TD3",
-    "es": "OpenAI-ES",
-    "cem_rl": "CEM-RL",
-    "es_td3_buffers_soft": "ES-TD3Buffers (soft overwrite)",
-    "es_td3_shared_soft": "ES-TD3 (one shared buffer, soft overwrite)",
-}
-ES_TD3_BUFFERS = ("es_td3_buffers", "es_td3_buffers_soft")  # runs that have a good:bad:noisy ratio
-# ES-TD3 returns its ES mean, but the buffers act on its TD3 actor: the report's tables and curves
-# also show that actor (``final_td3_actor_return`` / ``td3_eval_return``) as a row of its own.
+# A run whose summary has ``final_td3_actor_return`` (its metrics ``td3_eval_return``) learns a TD3
+# actor beside the policy it returns: the report's tables and curves show that actor as a row of its own.
 TD3_ACTOR_SUFFIX = "/td3_actor"
-# What each algorithm returns, for a run whose metrics have no TD3/ES columns.
-RETURNED_POLICY = {"td3": "TD3 actor", "es": "ES mean", "cem_rl": "CEM mean"}
+TD3_ACTOR = "TD3 actor"  # the TD3 actor, in words (and the returned policy of a recipe that returns it)
+RETURNED_POLICY = "returned policy"  # the returned policy of a run whose recipe is not known
 
 FIGURE_DPI = 120
 FONT = {"font.size": 9, "axes.titlesize": 9.5, "axes.labelsize": 9, "legend.fontsize": 8, "xtick.labelsize": 8, "ytick.labelsize": 8}
 
 
 def ratio_text(summary: dict) -> str:
-    """``"0.5:0.2:0.3"`` for ES-TD3Buffers runs (runs at different ratios are different
-    configurations: never pooled), ``""`` for every other algorithm."""
-    if summary["algorithm"] not in ES_TD3_BUFFERS or summary.get("ratio") is None:
+    """``"0.5:0.2:0.3"`` for a run with a good:bad:noisy ratio of its own (runs at different ratios
+    are different configurations: never pooled); ``""`` for a run without one, or whose one shared
+    buffer (``buffer_mode`` ``"shared"``) makes the ratio moot."""
+    if summary.get("ratio") is None or summary.get("buffer_mode") == "shared":
         return ""
     return ":".join(f"{float(r):g}" for r in summary["ratio"])
 
 
-def label(algorithm: str, ratio: str = "") -> str:
-    """Display name: ``ES-TD3Buffers 0.5:0.2:0.3: its TD3 actor`` for ``es_td3_buffers/td3_actor``."""
+def label(algorithm: str, ratio: str = "", algorithms: Mapping[str, AlgorithmInfo] | None = None) -> str:
+    """Display name: ``ES-TD3Buffers 0.5:0.2:0.3: its TD3 actor`` for ``es_td3_buffers/td3_actor``
+    (the label from ``algorithms``; a name it does not hold is its own label)."""
     base, actor, _ = algorithm.partition(TD3_ACTOR_SUFFIX)
-    text = ALGORITHM_LABELS.get(base, base) + (f" {ratio}" if ratio else "")
+    info = (algorithms or {}).get(base)
+    text = (info.label if info else base) + (f" {ratio}" if ratio else "")
     return text + (": its TD3 actor" if actor else "")
 
 
@@ -60,19 +56,19 @@ def save_figure(fig, path: Path) -> Path:
     return path
 
 
-def draw_es_vs_td3(ax, run: dict) -> None:
-    """One run's panel: TD3 actor and ES mean per iteration (ES-TD3 runs; other algorithms: the
-    returned policy), the initial policy's return if recorded, overwrites as red dashed lines."""
+def draw_es_vs_td3(ax, run: dict, returned: str = RETURNED_POLICY) -> None:
+    """One run's panel: TD3 actor and ES mean per iteration (a run whose metrics have both; any other:
+    the returned policy, named ``returned``), the initial policy's return if recorded, overwrites as
+    red dashed lines."""
     from matplotlib.ticker import MaxNLocator
 
     rows, summary = run["metrics"], run["summary"]
     iterations = [row["iteration"] for row in rows]
     if "td3_eval_return" in rows[0]:
-        ax.plot(iterations, [row["td3_eval_return"] for row in rows], marker="o", markersize=3, label="TD3 actor")
+        ax.plot(iterations, [row["td3_eval_return"] for row in rows], marker="o", markersize=3, label=TD3_ACTOR)
         ax.plot(iterations, [row["es_eval_return"] for row in rows], marker="s", markersize=3, label="ES mean")
     else:
-        name = RETURNED_POLICY.get(summary["algorithm"], "returned policy")
-        ax.plot(iterations, [row["eval_return"] for row in rows], marker="o", markersize=3, label=name)
+        ax.plot(iterations, [row["eval_return"] for row in rows], marker="o", markersize=3, label=returned)
     if summary.get("initial_return") is not None:
         ax.axhline(summary["initial_return"], color="grey", linestyle=":", label="initial policy")
     overwritten = [row["iteration"] for row in rows if row.get("overwritten") is True]
@@ -83,17 +79,18 @@ def draw_es_vs_td3(ax, run: dict) -> None:
     ax.grid(alpha=0.3)
 
 
-def plot_run(run_dir, summary: dict | None = None) -> Path:
+def plot_run(run_dir, summary: dict | None = None, info: AlgorithmInfo | None = None) -> Path:
     """``learning_curve.png`` in one run directory (every recipe, at the end of its run, before
     ``summary`` is written; by default read from ``summary.json``): the deterministic evaluations
-    per iteration, overwrites marked."""
+    per iteration, overwrites marked; ``info``, the recipe's, names the algorithm and its returned policy."""
     plt = pyplot()
     run_dir = Path(run_dir)
     summary = summary if summary is not None else json.loads((run_dir / "summary.json").read_text())
     run = {"summary": summary, "metrics": read_metrics(run_dir / "metrics.csv"), "dir": run_dir}
     fig, ax = plt.subplots(figsize=(6, 4))
-    draw_es_vs_td3(ax, run)
+    draw_es_vs_td3(ax, run, info.returned if info else RETURNED_POLICY)
     ax.set_ylabel("evaluation return (deterministic)")
-    ax.set_title(f"{summary['env']}, seed {summary['seed']}: {label(summary['algorithm'], ratio_text(summary))}", fontsize=10)
+    known = {info.name: info} if info else None
+    ax.set_title(f"{summary['env']}, seed {summary['seed']}: {label(summary['algorithm'], ratio_text(summary), known)}", fontsize=10)
     ax.legend(fontsize=8, loc="best")
     return save_figure(fig, run_dir / "learning_curve.png")
