@@ -753,8 +753,8 @@ def test_a_full_filesystem_stops_the_run_keeps_the_last_checkpoint_and_a_rerun_r
 
 
 def test_a_signal_asks_for_a_stop_a_second_one_or_the_grace_period_stops_at_once(monkeypatch):
-    from torchrl_esrl.run import lifecycle
-    from torchrl_esrl.run.lifecycle import StopOnSignal, Stopped
+    from torchrl_esrl.run import stop as stop_module
+    from torchrl_esrl.run.stop import StopOnSignal, Stopped
 
     stop = StopOnSignal().install()
     try:
@@ -770,7 +770,7 @@ def test_a_signal_asks_for_a_stop_a_second_one_or_the_grace_period_stops_at_once
     finally:
         stop.uninstall()
     assert signal.getsignal(signal.SIGTERM) == signal.SIG_DFL
-    monkeypatch.setattr(lifecycle, "STOP_GRACE_S", 0.2)
+    monkeypatch.setattr(stop_module, "STOP_GRACE_S", 0.2)
     stop = StopOnSignal().install()
     try:
         os.kill(os.getpid(), signal.SIGTERM)
@@ -782,7 +782,7 @@ def test_a_signal_asks_for_a_stop_a_second_one_or_the_grace_period_stops_at_once
 
 
 def test_submitits_preemption_handler_is_called_after_the_stop():
-    from torchrl_esrl.run.lifecycle import StopOnSignal, Stopped
+    from torchrl_esrl.run.stop import StopOnSignal, Stopped
 
     called = []
     previous = signal.signal(signal.SIGUSR2, lambda signum, frame: called.append(signum))  # as submitit installs it

@@ -1,6 +1,6 @@
 """The run harness every recipe shares: seeding, run directory, metrics, evaluation, summary.
 
-One evaluation protocol for all algorithms (ES-TD3Buffers, TD3, OpenAI-ES, CEM-RL):
+One evaluation protocol for every recipe:
 
 - at every iteration checkpoint (one iteration = ``td3.frames_per_iteration`` frames of the RL
   learner), the policy the algorithm *returns* is evaluated deterministically over
