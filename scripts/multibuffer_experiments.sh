@@ -8,6 +8,10 @@
 #   HalfCheetah-v5, Walker2d-v5, Swimmer-v5 and Ant-v5, seeds 0-4 of: ES-TD3Buffers 0.5:0.2:0.3; one
 #   shared buffer (buffer.mode=shared); TD3 (Fujimoto's uniform warm-up, K = 1,000 frames: conf/td3.yaml);
 #   OpenAI-ES.
+# SET=cem_rl_buffers (the miniature's preset and scaling), 20 runs: HalfCheetah-v5 and Walker2d-v5, seeds
+#   0-4 of CEM-RL and of CEM-RL with the return-routed MultiBuffer (recipes/cem_rl_buffers.py): 80k frames
+#   each, 8 iterations of one 10-member generation (td3.frames_per_iteration=10000), K = 1,000, the
+#   reference's cem.start_frames (10,000: learning from the second generation on).
 # SET=multibuffer (conf/experiment/multibuffer.yaml, the earlier 2% set), 66 runs:
 #   HalfCheetah-v5 and Walker2d-v5, seeds 0-4 of: ES-TD3Buffers 0.5:0.2:0.3; one shared buffer; soft
 #   overwrite (overwrite.mode=soft, mix 0.5); TD3 (warm-up K = 5,000 frames); CEM-RL (one 10-member
@@ -34,7 +38,8 @@ WORK=${1:-runs_$SET}
 JOBS=${2:-2}
 shift $(( $# < 2 ? $# : 2 ))
 cd "$(dirname "$0")/.."
-export SET WORK JOBS EXTRA="$*" RESULTS=${RESULTS:-docs/results/runs/$SET} PYTHON=${PYTHON:-python} COMMIT=${COMMIT:-0} KEEP_CHECKPOINTS=${KEEP_CHECKPOINTS:-0}
+case $SET in cem_rl_buffers) PRESET=${PRESET:-miniature} ;; *) PRESET=${PRESET:-$SET} ;; esac
+export SET PRESET WORK JOBS EXTRA="$*" RESULTS=${RESULTS:-docs/results/runs/$SET} PYTHON=${PYTHON:-python} COMMIT=${COMMIT:-0} KEEP_CHECKPOINTS=${KEEP_CHECKPOINTS:-0}
 ONLY=${ONLY:-.}
 mkdir -p "$WORK" "$RESULTS"
 
@@ -64,7 +69,14 @@ runs() {  # env row recipe seed [overrides...], one run per line, in the order t
           echo "halfcheetah es_td3_ratio_0.8_0.1_0.1 es_td3.py $seed buffer.ratio=[0.8,0.1,0.1]"
         fi
       done ;;
-    *) echo "unknown SET=$SET (miniature | multibuffer)" >&2; return 1 ;;
+    cem_rl_buffers)
+      for seed in 0 1 2 3 4; do
+        for env in halfcheetah walker2d; do
+          echo "$env cem_rl cem_rl.py $seed iterations=8 td3.frames_per_iteration=10000"
+          echo "$env cem_rl_buffers cem_rl_buffers.py $seed iterations=8 td3.frames_per_iteration=10000"
+        done
+      done ;;
+    *) echo "unknown SET=$SET (miniature | multibuffer | cem_rl_buffers)" >&2; return 1 ;;
   esac
 }
 
@@ -80,7 +92,7 @@ run_one() {
     start=$(date +%s)
     # shellcheck disable=SC2086  # EXTRA: several overrides, split on purpose
     # TORCHRL_ESRL_JOBS: JOBS runs share the machine, each takes its share of the cores (torchrl_esrl/threads.py)
-    TORCHRL_ESRL_JOBS=$JOBS "$PYTHON" "recipes/$recipe" env="$env" experiment="$SET" seed="$seed" "$@" $EXTRA \
+    TORCHRL_ESRL_JOBS=$JOBS "$PYTHON" "recipes/$recipe" env="$env" experiment="$PRESET" seed="$seed" "$@" $EXTRA \
       logger.progress=false hydra.run.dir="$dir" > "$dir.log" 2>&1
     status=$?
     mkdir -p "$dir"
@@ -92,7 +104,7 @@ run_one() {
   cp "$dir/.hydra/config.yaml" "$dest/config.yaml"
   if [ -f "$dir/timing.txt" ]; then cp "$dir/timing.txt" "$dest/"; fi
   if [ "$KEEP_CHECKPOINTS" != 1 ]; then rm -rf "$dir/checkpoints"; fi
-  if [ "$COMMIT" = 1 ]; then flock "$WORK/.git.lock" sh -c 'git add "$1" && git commit -q -m "results: $2 (experiment=$3)" -- "$1"' _ "$dest" "$env $name" "$SET"; fi
+  if [ "$COMMIT" = 1 ]; then flock "$WORK/.git.lock" sh -c 'git add "$1" && git commit -q -m "results: $2 (experiment=$3)" -- "$1"' _ "$dest" "$env $name" "$PRESET"; fi
 }
 export -f run_one
 
