@@ -32,17 +32,24 @@ def test_flat_parameters_round_trip_excludes_buffers():
     assert torch.equal(flat_parameters(actor), torch.arange(vector.numel(), dtype=torch.float32))
 
 
-def test_population_actor_matches_each_member_loaded_into_the_actor():
-    env = make_env("pendulum")  # action bounds [-2, 2]: checks the rescaling too
-    actor = make_actor(3, env.action_spec)
-    population = flat_parameters(actor)[None] + 0.3 * torch.randn(6, flat_parameters(actor).numel())
-    observations = torch.randn(6, 3)
+def _batched_equals_each_member(actor, members: int) -> torch.Tensor:
+    """PopulationActor's actions for ``members`` perturbed actors, checked against each one loaded
+    into the actor module; returns them."""
+    population = flat_parameters(actor)[None] + 0.3 * torch.randn(members, flat_parameters(actor).numel())
+    observations = torch.randn(members, 3)
     batched = PopulationActor(actor)(population, observations)
     member = copy.deepcopy(actor)
-    for p in range(6):
+    for p in range(members):
         load_flat_parameters(member, population[p])
         expected = member(TensorDict(observation=observations[p : p + 1], batch_size=[1]))["action"]
         torch.testing.assert_close(batched[p : p + 1], expected, rtol=1e-5, atol=1e-6)
+    return batched
+
+
+def test_population_actor_matches_each_member_loaded_into_the_actor():
+    env = make_env("pendulum")  # action bounds [-2, 2]: checks the rescaling too
+    actor = make_actor(3, env.action_spec)
+    batched = _batched_equals_each_member(actor, members=6)
     assert batched.abs().max() <= 2.0 and batched.abs().max() > 1.0
 
 
@@ -71,14 +78,7 @@ def test_population_actor_computes_mixed_activations_and_refuses_a_biasless_line
     env = make_env("pendulum")
     actor = make_actor(3, env.action_spec, (16, 16), "tanh")
     actor[0].module[3] = nn.ReLU()  # tanh after the first Linear, ReLU after the second
-    population = flat_parameters(actor)[None] + 0.3 * torch.randn(4, flat_parameters(actor).numel())
-    observations = torch.randn(4, 3)
-    batched = PopulationActor(actor)(population, observations)
-    member = copy.deepcopy(actor)
-    for p in range(4):
-        load_flat_parameters(member, population[p])
-        expected = member(TensorDict(observation=observations[p : p + 1], batch_size=[1]))["action"]
-        torch.testing.assert_close(batched[p : p + 1], expected, rtol=1e-5, atol=1e-6)
+    _batched_equals_each_member(actor, members=4)
     actor[0].module[2] = nn.Linear(16, 16, bias=False)  # its flat vector has no bias to split
     assert PopulationActor.refusal(actor) == "actor MLP: a Linear without bias"
     with pytest.raises(ValueError, match="ModulePopulation"):
