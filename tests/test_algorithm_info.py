@@ -13,7 +13,7 @@ ROOT = Path(__file__).resolve().parents[1]
 def test_discover_reads_every_recipe_and_orders_the_rows_as_the_paper_report_did():
     infos = discover(ROOT / "recipes")  # recipes/report.py among them: it declares none and runs nothing on import
     order = sorted(infos, key=lambda name: Algorithms(infos).row_order((name, "")))
-    assert order == ["es_td3_buffers", "es_td3_buffers_soft", "es_td3_shared", "es_td3_shared_soft", "td3", "cem_rl", "es"]
+    assert order == ["es_td3_buffers", "es_td3_buffers_soft", "es_td3_shared", "es_td3_shared_soft", "td3", "cem_rl", "cem_rl_buffers", "cem_rl_buffers_shared", "es"]
     assert (infos["es_td3_shared_soft"].label, infos["td3"].returned, infos["cem_rl"].returned) == (
         "ES-TD3 (one shared buffer, soft overwrite)", "TD3 actor", "CEM mean")
 
