@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import copy
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -78,7 +78,9 @@ class Case:
     the built networks before TD3 is made; ``td3(cfg, actor, critic, action_spec)`` builds TD3
     instead of ``make_td3``; ``batch(batch)`` edits the batch the updates train on. ``given``:
     overrides of the unchanged run the change is compared with (where the change only shows under
-    another setting); ``reaches``: the parts whose reference outputs the change must alter."""
+    another setting); ``reaches``: the parts whose reference outputs the change must alter;
+    ``pieces``: what the fast run must compute some pieces with (``{"td3_loss": "fast"}``: the
+    change is trained through the hand-written gradients, not handed over)."""
 
     id: str
     overrides: tuple[str, ...] = ()
@@ -88,6 +90,7 @@ class Case:
     td3: Callable | None = None
     batch: Callable | None = None
     reaches: tuple[str, ...] = ENV_PARTS
+    pieces: dict[str, str] = field(default_factory=dict)
 
     @property
     def changed(self) -> bool:
@@ -102,19 +105,33 @@ def layer_norm_in_actor(actor, critic):
     return actor, critic
 
 
-def td3_with_loss(subclass: Callable[[type], type]):
-    """TD3 built as ``make_td3`` builds it, with ``subclass(loss class make_td3 picks)`` as its loss."""
+def td3_built(td3_class: type[TD3] = TD3, loss: Callable[[type], type] | None = None, **td3_kwargs):
+    """TD3 built as ``make_td3`` builds it, as ``td3_class`` (a ``TD3`` subclass), with
+    ``loss(loss class make_td3 picks)`` as its loss (None: that class) and ``td3_kwargs``
+    (``num_qvalue_nets``) passed on."""
 
     def build(cfg, actor, critic, action_spec):
         chosen = factories.make_td3(cfg, copy.deepcopy(actor), copy.deepcopy(critic), action_spec)
         c = cfg.td3
         torch.manual_seed(1)  # as the run seeds make_td3 (TD3Loss draws the second critic)
-        return TD3(
+        return td3_class(
             actor, critic, action_spec, lr=c.lr, gamma=c.gamma, tau=c.tau, policy_noise=c.policy_noise,
             noise_clip=c.noise_clip, policy_delay=c.policy_delay, exploration_noise=c.exploration_noise,
-            loss_function=c.loss_function, loss_class=subclass(type(chosen.loss)),
+            loss_function=c.loss_function, loss_class=type(chosen.loss) if loss is None else loss(type(chosen.loss)),
             target_update_class=type(chosen.target_update), optimizer_impl=chosen.optimizer_impl,
+            num_threads=chosen.num_threads, **td3_kwargs,
         )
+
+    return build
+
+
+def td3_edited(edit: Callable[[TD3], None]):
+    """``make_td3``'s TD3, then ``edit(td3)`` (hooks, frozen parameters) before it trains."""
+
+    def build(cfg, actor, critic, action_spec):
+        td3 = factories.make_td3(cfg, actor, critic, action_spec)
+        edit(td3)
+        return td3
 
     return build
 
@@ -126,6 +143,51 @@ def doubled_value_loss(base: type) -> type:
             return 2 * loss, metadata
 
     return DoubledValueLoss
+
+
+class L2PenaltyTD3(TD3):
+    """TD3 with an L2 penalty on the trained network's parameters added to each loss."""
+
+    def backward(self, loss, optimizer):
+        super().backward(loss + 1e-1 * sum(p.pow(2).sum() for p in optimizer.param_groups[0]["params"]), optimizer)
+
+
+GRADIENT_NORM = 0.05  # below the first updates' gradient norms: the clipping acts
+
+
+def clip_gradient_norm(optimizer, *_) -> None:
+    torch.nn.utils.clip_grad_norm_(optimizer.param_groups[0]["params"], GRADIENT_NORM)
+
+
+class ClippedTD3(TD3):
+    """TD3 that clips each network's gradient norm after ``loss.backward()``."""
+
+    def backward(self, loss, optimizer):
+        super().backward(loss, optimizer)
+        clip_gradient_norm(optimizer)
+
+
+def clip_in_step_pre_hooks(td3):
+    """Gradient-norm clipping in the optimizers' step pre-hooks (fused Adam's direct kernel call runs them)."""
+    for optimizer in (td3.actor_optimizer, td3.critic_optimizer):
+        optimizer.register_step_pre_hook(clip_gradient_norm)
+
+
+def scale_critic_gradient(td3):
+    """A gradient hook on the critics' first weight: its rows alternately zeroed and halved (Adam
+    undoes a constant scale; the zeroed rows are what shows)."""
+    weight = td3.loss.qvalue_network_params.get(("module", "0", "weight"))
+    scale = torch.where(torch.arange(weight.shape[-2]) % 2 == 0, 0.0, 0.5).unsqueeze(-1)
+    weight.register_hook(lambda grad: grad * scale)
+
+
+def freeze_actor_layer(td3):
+    td3.actor[0].module[0].requires_grad_(False)
+
+
+def freeze_critic_layer(td3):
+    for kind in ("weight", "bias"):
+        td3.loss.qvalue_network_params.get(("module", "0", kind)).requires_grad_(False)
 
 
 def priority_weights(batch):
@@ -214,13 +276,23 @@ LOSSES = [
     Case("noise-clip", ("td3.noise_clip=0.05",), reaches=LOSS_PARTS),
     Case("tau", ("td3.tau=0.5",), reaches=LOSS_PARTS),
     Case("lr", ("td3.lr=0.01",), reaches=LOSS_PARTS),
-    Case("loss-subclass-value-loss", td3=td3_with_loss(doubled_value_loss), reaches=LOSS_PARTS),
+    Case("loss-subclass-value-loss", td3=td3_built(loss=doubled_value_loss), reaches=LOSS_PARTS),
     Case("priority-weights", batch=priority_weights, reaches=LOSS_PARTS),
 ]
 
-# TD3 trained through loss.backward(): more critics (num_qvalue_nets), extra loss terms, gradient
-# clipping, gradient hooks, frozen layers. Their rows go here.
-BACKWARD: list[Case] = []
+# TD3 trained through loss.backward(): other numbers of critics (the hand-written loss is for the
+# twin pair: it hands over), and edits the hand-written gradients must take as autograd's do.
+MANUAL_GRADIENTS = {"td3_loss": "fast"}
+BACKWARD = [
+    *(Case(f"num-qvalue-nets-{n}", td3=td3_built(num_qvalue_nets=n), reaches=LOSS_PARTS,
+           pieces={"td3_loss": f"reference (num_qvalue_nets={n})"}) for n in (1, 3)),
+    Case("backward-l2-term", td3=td3_built(L2PenaltyTD3), reaches=LOSS_PARTS, pieces=MANUAL_GRADIENTS),
+    Case("backward-clip-grad-norm", td3=td3_built(ClippedTD3), reaches=LOSS_PARTS, pieces=MANUAL_GRADIENTS),
+    Case("clip-in-step-pre-hook", td3=td3_edited(clip_in_step_pre_hooks), reaches=LOSS_PARTS, pieces={**MANUAL_GRADIENTS, "adam": "fast"}),
+    Case("critic-gradient-hook", td3=td3_edited(scale_critic_gradient), reaches=LOSS_PARTS, pieces=MANUAL_GRADIENTS),
+    Case("actor-frozen-layer", td3=td3_edited(freeze_actor_layer), reaches=LOSS_PARTS, pieces=MANUAL_GRADIENTS),
+    Case("critic-frozen-layer", td3=td3_edited(freeze_critic_layer), reaches=LOSS_PARTS, pieces=MANUAL_GRADIENTS),
+]
 
 CASES = [*BASE, *ENV_KWARGS, *WRAPPERS, *TRANSFORMS, *NETWORKS, *LOSSES, *BACKWARD]
 
@@ -413,6 +485,7 @@ def test_fast_computes_what_the_reference_does_or_hands_over(case):
     reference, fast = run_row(case, (*case.given, *case.overrides))
     assert set(reference.pieces.values()) == {"reference"} and reference.evaluation_forward == "reference"
     assert set(fast.pieces) == set(factories.FAST_PIECES)
+    assert {piece: fast.pieces[piece] for piece in case.pieces} == case.pieces, fast.pieces
     largest = {}
     for part, pieces in PARTS.items():
         what = [fast.evaluation_forward] if part == "evaluation" else [fast.pieces[piece] for piece in pieces]
