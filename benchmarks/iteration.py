@@ -35,9 +35,9 @@ from pathlib import Path
 
 
 from benchmarks.common import fill, save_report  # sets OMP_WAIT_POLICY, first
+from hydra import compose, initialize_config_dir
 
 import torch
-from omegaconf import OmegaConf
 
 from torchrl_esrl.envs import quiet_logs
 from torchrl_esrl.run.factories import (
@@ -68,9 +68,8 @@ assert set(PIECE_PARTS) == set(FAST_PIECES), "every fast piece has its parts"
 def paper_config(env: str = "halfcheetah", capacity: int | None = None, max_episode_steps: int | None = None):
     """conf/config.yaml's paper values; ``capacity`` (and K with it, if smaller) and
     ``max_episode_steps`` shrink a smoke run."""
-    cfg = OmegaConf.load(ROOT / "conf/config.yaml")
-    cfg.env = OmegaConf.load(ROOT / f"conf/env/{env}.yaml")
-    cfg.logger.progress = False
+    with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
+        cfg = compose("config", overrides=[f"env={env}", "logger.progress=false"])
     if capacity:
         cfg.buffer.capacity = capacity
         cfg.buffer.min_size = min(cfg.buffer.min_size, capacity)
