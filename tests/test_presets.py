@@ -36,3 +36,13 @@ def test_miniature_scales_the_paper_by_one_factor(config, env):
         for part in key.split("."):
             first, second = first[part], second[part]
         assert first == second, key  # not scaled: the paper's value
+
+
+@pytest.mark.parametrize("env", ["halfcheetah", "walker2d"])
+def test_the_iteration_benchmark_times_the_paper_config(env):
+    """benchmarks.iteration extrapolates the paper run: it must compose the recipe's own paper config."""
+    from benchmarks.iteration import paper_config
+
+    expected = composed("config", "paper", env)
+    expected.logger.progress = False  # a benchmark prints no bar
+    assert paper_config(env) == expected
