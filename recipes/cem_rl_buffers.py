@@ -54,7 +54,7 @@ def train(cfg: DictConfig, run: Run) -> dict:
     for iteration in run.iterations("CEM-RL (return-routed buffers)"):
         # Generations until M new frames: the RL half trained on batches at the ratio once every buffer
         # holds K; RL members' episodes to noisy, CEM members' to good or bad by the threshold; the elites update CEM.
-        stats = cem_rl_iteration(cem, td3, buffer, population_collector, counters, cfg.td3.frames_per_iteration, cfg.cem.start_frames, cfg.cem.rl_fraction, cfg.td3.tau, route)
+        stats = cem_rl_iteration(cem, td3, buffer, population_collector, counters, cfg.td3.frames_per_iteration, cfg.cem.start_frames, rl_members, cfg.td3.tau, route)
         run.log(
             iteration, counters["frames"], 0, eval_return=run.evaluate(cem.mean), **cem_rl_metrics(cem, td3, counters, stats),
             **threshold.metrics(), **{f"{name}_size": size for name, size in buffer.sizes().items()},

@@ -34,15 +34,14 @@ def routed_by_return(threshold, rl_members: int) -> Callable:
     return route
 
 
-def cem_rl_iteration(cem, td3, buffer, population_collector, counters: dict, frames_per_iteration: int, start_frames: int, rl_fraction: float, tau: float, route: Callable = one_buffer) -> dict:
+def cem_rl_iteration(cem, td3, buffer, population_collector, counters: dict, frames_per_iteration: int, start_frames: int, rl_members: int, tau: float, route: Callable = one_buffer) -> dict:
     """Generations until ``frames_per_iteration`` new frames. Each: sample a population; past
-    ``start_frames`` frames and once the buffer is ready, train its first ``rl_fraction`` with
+    ``start_frames`` frames and once the buffer is ready, train its first ``rl_members`` with
     the shared critic (:func:`~torchrl_esrl.es.cem.cem_rl_gradient_steps`, F = the previous
     generation's frames); every member plays one deterministic episode, written by ``route``;
     the elites update the CEM. ``counters`` (``frames``, ``last_generation_frames``,
     ``actor_steps``; checkpointed with the run) advance once the iteration is done. Returns the iteration's member
     returns and critic losses."""
-    rl_members = int(cem.population_size * rl_fraction)
     advanced = dict(counters)
     frames, iteration_frames, returns, critic_losses = advanced["frames"], 0, [], []
     while iteration_frames < frames_per_iteration:
