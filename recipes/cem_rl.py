@@ -35,9 +35,7 @@ def train(cfg: DictConfig, run: Run) -> dict:
     population_collector = make_es_collector(cfg, actor)  # one deterministic episode per member
     rl_members = int(cfg.cem.population_size * cfg.cem.rl_fraction)
     run.start(actor, td3=td3, buffer=buffer, cem=cem, population_collector=population_collector)
-    counters = run.progress.counters  # checkpointed with the run
-    for key in ("frames", "last_generation_frames", "actor_steps"):
-        counters.setdefault(key, 0)
+    counters = run.progress.counters  # checkpointed with the run; cem_rl_iteration advances them
     for iteration in run.iterations("CEM-RL"):
         # Generations until M new frames: the RL half trained, every member's episode into the buffer, the elites update CEM.
         stats = cem_rl_iteration(cem, td3, buffer, population_collector, counters, cfg.td3.frames_per_iteration, cfg.cem.start_frames, rl_members, cfg.td3.tau)

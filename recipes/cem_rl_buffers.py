@@ -48,9 +48,7 @@ def train(cfg: DictConfig, run: Run) -> dict:
     rl_members = int(cfg.cem.population_size * cfg.cem.rl_fraction)
     route = one_buffer if cfg.buffer.mode == "shared" else routed_by_return(threshold, rl_members)
     run.start(actor, td3=td3, buffer=buffer, threshold=threshold, cem=cem, population_collector=population_collector)
-    counters = run.progress.counters  # checkpointed with the run
-    for key in ("frames", "last_generation_frames", "actor_steps"):
-        counters.setdefault(key, 0)
+    counters = run.progress.counters  # checkpointed with the run; cem_rl_iteration advances them
     for iteration in run.iterations("CEM-RL (return-routed buffers)"):
         # Generations until M new frames: the RL half trained on batches at the ratio once every buffer
         # holds K; RL members' episodes to noisy, CEM members' to good or bad by the threshold; the elites update CEM.

@@ -50,12 +50,9 @@ def recipe_command(script: str, *overrides: str) -> list[str]:
 
 def load_recipe(script: str):
     """The recipe module ``recipes/<script>``, imported (its ``ALGORITHMS``, ``holdings``, ``train``)."""
-    import importlib.util
+    from torchrl_esrl.run.algorithm_info import load_recipe as load
 
-    spec = importlib.util.spec_from_file_location(f"recipe_{Path(script).stem}", ROOT / "recipes" / script)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load(ROOT / "recipes" / script)
 
 
 @pytest.fixture(scope="session")

@@ -40,9 +40,9 @@ def cem_rl_iteration(cem, td3, buffer, population_collector, counters: dict, fra
     the shared critic (:func:`~torchrl_esrl.es.cem.cem_rl_gradient_steps`, F = the previous
     generation's frames); every member plays one deterministic episode, written by ``route``;
     the elites update the CEM. ``counters`` (``frames``, ``last_generation_frames``,
-    ``actor_steps``; checkpointed with the run) advance once the iteration is done. Returns the iteration's member
+    ``actor_steps``, 0 until set; checkpointed with the run) advance once the iteration is done. Returns the iteration's member
     returns and critic losses."""
-    advanced = dict(counters)
+    advanced = {"frames": 0, "last_generation_frames": 0, "actor_steps": 0, **counters}
     frames, iteration_frames, returns, critic_losses = advanced["frames"], 0, [], []
     while iteration_frames < frames_per_iteration:
         population = cem.ask()

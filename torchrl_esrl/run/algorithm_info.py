@@ -26,13 +26,20 @@ class AlgorithmInfo:
     rank: int = 100
 
 
+def load_recipe(path: str | Path):
+    """The recipe module at ``path``, imported (recipes are scripts, not a package): its
+    ``ALGORITHMS``, ``holdings`` and ``train``; its ``main`` is built, not run."""
+    path = Path(path)
+    spec = importlib.util.spec_from_file_location(f"_recipe_{path.stem}", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
 def discover(recipes_dir: str | Path) -> dict[str, AlgorithmInfo]:
     """Every ``ALGORITHMS`` entry of the recipe modules in ``recipes_dir``, by name."""
     found: dict[str, AlgorithmInfo] = {}
     for path in sorted(Path(recipes_dir).glob("*.py")):
-        spec = importlib.util.spec_from_file_location(f"_recipe_{path.stem}", path)
-        module = importlib.util.module_from_spec(spec)
-        spec.loader.exec_module(module)
-        for info in getattr(module, "ALGORITHMS", ()):
+        for info in getattr(load_recipe(path), "ALGORITHMS", ()):
             found[info.name] = info
     return found

@@ -193,7 +193,7 @@ def recipe_main(
             stop.uninstall()
             if lock is not None:
                 lock.release()  # a multirun job: its process may run other jobs next
-        ending = final_lines(summary, run_dir, info=algorithm_of(algorithm, cfg))  # returns of the returned, TD3 and initial policies; where the files are
+        ending = final_lines(summary, run_dir, info=run.info)  # returns of the returned, TD3 and initial policies; where the files are
         log.info(f"finished: {ending}")
         print(ending)
 
