@@ -130,7 +130,7 @@ class TD3:
 
     def update(self, batch: TensorDictBase) -> dict[str, float]:
         """One TD3 step: critic update; every ``policy_delay`` steps actor and target updates."""
-        self._zero_grad(self.critic_optimizer)
+        self.critic_optimizer.zero_grad(set_to_none=True)
         critic_loss, _ = self.loss.value_loss(batch)
         self.backward(critic_loss, self.critic_optimizer)
         out = {"critic_loss": critic_loss.item()}
@@ -139,7 +139,7 @@ class TD3:
         self._step(self.critic_optimizer)
         self.updates += 1
         if self.updates % self.policy_delay == 0:
-            self._zero_grad(self.actor_optimizer)
+            self.actor_optimizer.zero_grad(set_to_none=True)
             actor_loss, _ = self.loss.actor_loss(batch)
             self.backward(actor_loss, self.actor_optimizer)
             out["actor_loss"] = actor_loss.item()
@@ -154,16 +154,6 @@ class TD3:
         subclass to add a loss term (``super().backward(loss + extra, optimizer)``) or to edit the
         gradients after it (``torch.nn.utils.clip_grad_norm_(optimizer.param_groups[0]["params"], c)``)."""
         loss.backward()
-
-    def _zero_grad(self, optimizer: torch.optim.Adam) -> None:
-        """``optimizer.zero_grad(set_to_none=True)``; with fused Adam the same ``p.grad = None`` loop
-        without the profiler scope torch wraps around it on every call."""
-        if self.optimizer_impl != "fused":
-            optimizer.zero_grad(set_to_none=True)
-            return
-        for group in optimizer.param_groups:
-            for p in group["params"]:
-                p.grad = None
 
     def _step(self, optimizer: torch.optim.Adam) -> None:
         """``optimizer.step()``; fused Adam as one direct kernel call (same arithmetic)."""
