@@ -11,6 +11,7 @@ import numpy as np
 import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModule
+from torch.autograd.function import once_differentiable
 from torchrl.modules import MLP, ValueOperator
 from torchrl.objectives import TD3Loss
 from torchrl.objectives.value import TD0Estimator
@@ -242,8 +243,8 @@ class _CriticLoss(torch.autograd.Function):
         return loss, current_qvalue, td_error
 
     @staticmethod
+    @once_differentiable
     def backward(ctx, grad_loss, _grad_qvalue, _grad_td_error):
-        _first_order_only()
         error, *saved = ctx.saved_tensors
         count = 2 * len(ctx.activations)
         if grad_loss is None:
@@ -281,8 +282,8 @@ class _ActorLoss(torch.autograd.Function):
         return loss, state_action_value
 
     @staticmethod
+    @once_differentiable
     def backward(ctx, grad_loss, _grad_value):
-        _first_order_only()
         activations, clamp, non_trivial = ctx.spec
         low, high, critic1 = ctx.constants
         count = 2 * len(activations)
@@ -301,13 +302,6 @@ class _ActorLoss(torch.autograd.Function):
             grad = torch.where((squashed >= -1 + eps) & (squashed <= 1 - eps), grad, 0.0)
         grads, _ = _backward(_layers(parameters, activations), actor_inputs, torch.ops.aten.tanh_backward(grad, squashed), ctx.needs_input_grad[3:])
         return None, None, None, *grads
-
-
-def _first_order_only() -> None:
-    """The hand-written backwards are not differentiable: refuse ``create_graph=True`` (the check
-    ``torch.autograd.function.once_differentiable`` makes, without its per-call wrapper)."""
-    if torch.is_grad_enabled():
-        raise RuntimeError("the hand-written TD3 gradients are first order only: backward(create_graph=True) needs implementation=reference")
 
 
 def _layers(parameters, activations) -> list:
