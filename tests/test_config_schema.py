@@ -71,34 +71,48 @@ def _leaves(node, prefix=""):
             yield f"{prefix}{key}", value
 
 
-SCHEMAS = {"config": "ESTD3Config", "es": "ESTD3Config", "td3": "TD3AloneConfig", "cem_rl": "CEMRLConfig"}  # recipe config -> its schema
-SCHEMA_NODES = {"config": "es_td3_schema", "es": "es_td3_schema", "td3": "td3_schema", "cem_rl": "cem_rl_schema"}
+TOP_CONFIGS = ("config", "es", "td3", "cem_rl")  # the recipe configs that list the schema themselves
 
 
 def test_yaml_files_hold_only_what_differs_from_the_schema_defaults():
     from torchrl_esrl.run import schema
 
-    defaults = dict(_leaves(OmegaConf.to_container(OmegaConf.structured(schema.CEMRLConfig))))
-    files = [*(CONF / f"{c}.yaml" for c in SCHEMAS), CONF / "common.yaml", *(CONF / "env").glob("*.yaml"), *(CONF / "experiment").glob("*.yaml")]
+    defaults = dict(_leaves(OmegaConf.to_container(OmegaConf.structured(schema.RunConfig))))
+    defaults.update(_leaves({"cem": OmegaConf.to_container(OmegaConf.structured(schema.CEMConfig))}))  # None until a recipe sets it
+    files = [*(CONF / f"{c}.yaml" for c in RECIPE_CONFIGS), CONF / "common.yaml", *(CONF / "env").glob("*.yaml"), *(CONF / "experiment").glob("*.yaml")]
     for path in files:
         content = OmegaConf.to_container(OmegaConf.load(path)) or {}
         prefix = "env." if path.parent.name == "env" else ""
         for key, value in _leaves({k: v for k, v in content.items() if k not in ("defaults", "hydra")}, prefix):
             assert key in defaults, f"{path.name}: {key} is not a schema key"
             assert value != defaults[key], f"{path.name}: {key}: {value!r} is the schema's default (torchrl_esrl/run/schema.py); write it once"
-    for config, name in SCHEMAS.items():  # each recipe's top config composes its own schema first
-        assert OmegaConf.load(CONF / f"{config}.yaml").defaults[0] == SCHEMA_NODES[config]
-        assert OmegaConf.get_type(composed(config)).__name__ == name
+    for config in TOP_CONFIGS:  # each recipe's top config composes the one schema first
+        assert OmegaConf.load(CONF / f"{config}.yaml").defaults[0] == schema.SCHEMA_NAME
+    for config in RECIPE_CONFIGS:
+        assert OmegaConf.get_type(composed(config)) is schema.RunConfig
+
+
+def test_nothing_under_run_names_an_algorithm():
+    """The run plumbing serves any recipe: no recipe's or algorithm's name is in its code, except the
+    names that are also a component's config section (``td3``, ``es``: TD3 and OpenAI-ES)."""
+    from torchrl_esrl.run import schema
+
+    recipes = [p for p in (ROOT / "recipes").glob("*.py") if p.stem != "report"]
+    names = {p.stem for p in recipes} | {name for p in recipes for name in re.findall(r'AlgorithmInfo\(\s*"(\w+)"', p.read_text())}
+    names -= {item for item in schema.RunConfig.__dataclass_fields__}
+    assert {"es_td3", "cem_rl_buffers", "es_td3_buffers", "cem_rl_buffers_shared"} <= names
+    for path in (ROOT / "torchrl_esrl" / "run").glob("*.py"):
+        found = names & set(re.findall(r"\w+", path.read_text()))
+        assert not found, f"{path.name} names {sorted(found)}"
 
 
 def test_every_key_has_its_default_and_every_free_value_a_check():
     from torchrl_esrl.run import schema
     from torchrl_esrl.run.config import CHECKS, schema_fields, section_of
 
-    for node in (schema.ESTD3Config, schema.TD3AloneConfig, schema.CEMRLConfig):
-        assert OmegaConf.missing_keys(OmegaConf.structured(node)) == {"env.name", "env.id"}  # the env group's choice
+    assert OmegaConf.missing_keys(OmegaConf.structured(schema.RunConfig)) == {"env.name", "env.id"}  # the env group's choice
     unchecked = set()
-    for key, item, annotation in schema_fields(schema.CEMRLConfig):
+    for key, item, annotation in schema_fields(schema.RunConfig):
         check = item.metadata.get("check")
         if check is not None:
             assert check["kind"] in CHECKS, key
@@ -123,7 +137,7 @@ def test_each_keys_check_refuses_a_value_outside_it_in_one_line():
     from torchrl_esrl.run.config import schema_fields, validate_config
 
     checked = 0
-    for key, item, _ in schema_fields(schema.CEMRLConfig):
+    for key, item, _ in schema_fields(schema.RunConfig):
         check = item.metadata.get("check")
         value = _outside(check) if check else None
         if value is None:

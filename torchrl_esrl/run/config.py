@@ -21,7 +21,7 @@ from hydra.utils import get_object
 from omegaconf import DictConfig, OmegaConf
 
 from torchrl_esrl.errors import ConfigError
-from torchrl_esrl.run.schema import ESTD3Config, Renamed
+from torchrl_esrl.run.schema import RunConfig, Renamed
 
 
 def section_of(annotation):
@@ -32,7 +32,7 @@ def section_of(annotation):
     return None
 
 
-def schema_fields(schema=ESTD3Config, prefix: str = "") -> Iterator[tuple[str, dataclasses.Field, object]]:
+def schema_fields(schema=RunConfig, prefix: str = "") -> Iterator[tuple[str, dataclasses.Field, object]]:
     """``(key, field, annotation)`` of every key of ``schema``, sections first-class: a section is
     yielded, then its keys."""
     hints = typing.get_type_hints(schema)
@@ -134,9 +134,9 @@ CHECKS = {"number": _number, "choice": _choice, "layers": _layers, "name": _name
 def check_fields(cfg, schema=None, prefix: str = "") -> None:
     """Each key's own check, as its schema field carries it (:mod:`torchrl_esrl.run.schema`), in the
     schema's order. ``schema``: the config's own (an untyped config, a resumed run's, is read as
-    :class:`ESTD3Config`). A section or an Optional key that is null is not checked."""
+    :class:`RunConfig`). A section or an Optional key that is null is not checked."""
     if schema is None:
-        schema = OmegaConf.get_type(cfg) if dataclasses.is_dataclass(OmegaConf.get_type(cfg)) else ESTD3Config
+        schema = OmegaConf.get_type(cfg) if dataclasses.is_dataclass(OmegaConf.get_type(cfg)) else RunConfig
     hints = typing.get_type_hints(schema)
     for item in dataclasses.fields(schema):
         key, value = f"{prefix}{item.name}", cfg[item.name]

@@ -31,8 +31,8 @@ def ratio_text(summary: dict) -> str:
 
 
 def label(algorithm: str, ratio: str = "", algorithms: Mapping[str, AlgorithmInfo] | None = None) -> str:
-    """Display name: ``ES-TD3Buffers 0.5:0.2:0.3: its TD3 actor`` for ``es_td3_buffers/td3_actor``
-    (the label from ``algorithms``; a name it does not hold is its own label)."""
+    """Display name: ``<label> 0.5:0.2:0.3: its TD3 actor`` for ``<name>/td3_actor`` at that ratio
+    (the label from ``algorithms``, the recipes' entries; a name it does not hold is its own label)."""
     base, actor, _ = algorithm.partition(TD3_ACTOR_SUFFIX)
     info = (algorithms or {}).get(base)
     text = (info.label if info else base) + (f" {ratio}" if ratio else "")

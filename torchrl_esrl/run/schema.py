@@ -1,16 +1,18 @@
-"""Every config key of the recipes, written once: its type, its default and its value check
-(Hydra structured configs).
+"""Every config key, written once: its type, its default and its value check (Hydra structured
+configs).
 
 The defaults are the paper's hyper-parameters (Table 2, Sections 4.2-4.3); every departure is in
-docs/deviations.md. Each recipe's top config (``conf/config.yaml``, ``td3.yaml``, ``es.yaml``,
-``cem_rl.yaml``) lists its schema first, so Hydra rejects unknown keys and wrong types while
-composing; the YAML files hold only what differs: the env, the experiment presets, Hydra's settings.
-A field's check (``metadata["check"]``, made by :func:`number`, :func:`one_of`...) is run by
-:func:`torchrl_esrl.run.config.validate_config`; checks across fields live there.
+docs/deviations.md. One schema, :class:`RunConfig`, holds the section of every component (env, TD3,
+actor, OpenAI-ES, CEM, buffers...); a recipe's top config (``conf/<recipe>.yaml``) lists it first,
+so Hydra rejects unknown keys and wrong types while composing, then sets what that recipe changes
+(a warm-up, a section left None here). The YAML files hold only what differs from the defaults here. A field's check (``metadata["check"]``, made by
+:func:`number`, :func:`one_of`...) is run by :func:`torchrl_esrl.run.config.validate_config`; checks
+across fields live there.
 
 To add a key: add its field here, with its default and check. If runs checkpointed before it
 existed must resume, make it :func:`added` (their configs get the default); a key that changes
-name keeps its old one as :func:`renamed`.
+name keeps its old one as :func:`renamed`. A new component's section is a new dataclass and one
+field of :class:`RunConfig`, Optional and None where only some recipes build the component.
 """
 from __future__ import annotations
 
@@ -21,7 +23,7 @@ from typing import Any, Callable, Dict, List, Optional
 from hydra.core.config_store import ConfigStore
 from omegaconf import MISSING
 
-SCHEMA_NAMES = {"es_td3": "es_td3_schema", "td3": "td3_schema", "cem_rl": "cem_rl_schema"}  # OpenAI-ES alone uses es_td3's
+SCHEMA_NAME = "run_schema"  # the node every recipe's top config lists first
 SEED_LIMIT = 2**31 - 2000  # numpy seeds are < 2**32; the recipes add up to 1000 for their streams
 # logger.backend -> the package its TorchRL logger needs ("" = no logger, csv = no extra package)
 LOGGER_PACKAGES = {"": None, "csv": None, "tensorboard": "tensorboard", "wandb": "wandb", "mlflow": "mlflow", "trackio": "trackio"}
@@ -210,7 +212,7 @@ class RayConfig:
 
 @dataclass
 class CEMConfig:
-    """CEM-RL (Pourchot and Sigaud 2019; recipes/cem_rl.py, torchrl_esrl/es/cem.py): values of the
+    """The CEM population of CEM-RL (Pourchot and Sigaud 2019; torchrl_esrl/es/cem.py): values of the
     authors' code (es_grad.py, ES.py sepCEM) where the CEM-RL paper's table is silent."""
 
     population_size: int = number(10, low=2, integer=True)  # CEM-RL: 10 actors
@@ -225,9 +227,8 @@ class CEMConfig:
 
 
 @dataclass
-class ESTD3Config:
-    """The config of ``recipes/es_td3.py`` (ES-TD3Buffers, Algorithm 1) and of ``recipes/es.py``
-    (OpenAI-ES alone), and every other recipe's shared keys. Sections a recipe does not read stay,
+class RunConfig:
+    """The config of every recipe: one section per component. Sections a recipe does not read stay,
     so that every run's saved config, and its resume, keeps the same keys."""
 
     seed: int = number(0, low=0, high=SEED_LIMIT, integer=True)
@@ -251,36 +252,11 @@ class ESTD3Config:
     mode: Optional[str] = renamed("es.schedule", "es.schedule=sequential or es.schedule=async")
     ray: RayConfig = field(default_factory=RayConfig)
     checkpoint: CheckpointConfig = field(default_factory=CheckpointConfig)
-    cem: Optional[CEMConfig] = None  # CEM-RL's section (CEMRLConfig)
-
-
-def _td3_alone() -> TD3Config:
-    # Fujimoto's TD3: uniform-random actions until learning starts (start_timesteps = 25,000). Learning
-    # starts when the buffer holds K = buffer.min_size items, so the warm-up is K frames: 25,000 with the
-    # paper preset, and scaled with K by the smaller presets (bench, multibuffer: 5,000; quick: 1,000).
-    return TD3Config(random_frames="${buffer.min_size}")
-
-
-@dataclass
-class TD3AloneConfig(ESTD3Config):
-    """The config of ``recipes/td3.py`` (TD3 alone): only the noisy buffer is used (buffer.ratio is ignored)."""
-
-    td3: TD3Config = field(default_factory=_td3_alone)
-
-
-@dataclass
-class CEMRLConfig(ESTD3Config):
-    """The config of ``recipes/cem_rl.py``: TD3 settings from ``td3``; one replay buffer of
-    buffer.capacity, learning once it holds buffer.min_size items; one iteration = generations
-    until td3.frames_per_iteration new frames entered the buffer."""
-
-    cem: CEMConfig = field(default_factory=CEMConfig)
+    cem: Optional[CEMConfig] = None  # the CEM population; a recipe that builds one sets `cem: {}` (these defaults) in its YAML
 
 
 def register_schema() -> None:
-    store = ConfigStore.instance()
-    for recipe, node in (("es_td3", ESTD3Config), ("td3", TD3AloneConfig), ("cem_rl", CEMRLConfig)):
-        store.store(name=SCHEMA_NAMES[recipe], node=node)
+    ConfigStore.instance().store(name=SCHEMA_NAME, node=RunConfig)
 
 
 register_schema()
