@@ -13,8 +13,8 @@ was ever overwritten, and the ES mean against its own TD3 actor run by run), sum
 overwrites, the differences called), iterations.md (every iteration of a row's only run) and
 timing.md (timing.txt, pieces.txt).
 
-With --overview, only overview.csv/.md: the paper's Table 1 beside the runs' final returns per
-experiment preset; --started names a file of runs started but not recorded ("<env id> <algorithm>
+With --overview, only overview.csv/.md: the paper's Table 1 (--paper-table, a CSV) beside the
+runs' final returns per experiment preset; --started names a file of runs started but not recorded ("<env id> <algorithm>
 <experiment>" a line), whose cells say "running".
 
 Labels and row order: every recipe's ALGORITHMS in this folder (torchrl_esrl/run/algorithm_info.py);
@@ -29,12 +29,15 @@ from pathlib import Path
 from torchrl_esrl.report import Algorithms, make_overview, make_report
 from torchrl_esrl.run.algorithm_info import discover
 
+PAPER_TABLE = Path(__file__).resolve().parents[1] / "docs" / "results" / "paper_table1.csv"  # the paper's Table 1 as printed
+
 
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("paths", nargs="+", help="run directories or folders holding runs (searched recursively)")
     parser.add_argument("--out", default="report", help="output folder (default: report/)")
     parser.add_argument("--overview", action="store_true", help="write only overview.md: the paper's Table 1 beside the runs")
+    parser.add_argument("--paper-table", default=str(PAPER_TABLE), help="with --overview: the paper's table, one 'env,task,algorithm,label,mean,std,median' row per entry (default: %(default)s)")
     parser.add_argument("--started", default=None, help="with --overview: runs started and not yet recorded, one '<env id> <algorithm> <experiment>' a line")
     parser.add_argument("--reference", default="es_td3_buffers", help="the row every other is compared to, at the paper's ratio (default: %(default)s)")
     parser.add_argument("--normalise-by", default="td3", help="the row whose mean final return is 1 on the aggregate's scale (default: %(default)s)")
@@ -48,9 +51,12 @@ def main(argv=None) -> None:
         if name not in infos:
             print(f"config error: {option}: {name!r} is no recipe's algorithm (allowed: {', '.join(sorted(infos))})", file=sys.stderr)
             sys.exit(2)
+    if args.overview and not Path(args.paper_table).is_file():
+        print(f"config error: --paper-table: {args.paper_table} is not a file (allowed: a CSV of the paper's table, as {PAPER_TABLE.name})", file=sys.stderr)
+        sys.exit(2)
     algorithms = Algorithms(infos, reference=args.reference, normalise_by=args.normalise_by, es_alone=args.es_alone)
     if args.overview:
-        report = make_overview(args.paths, args.out, algorithms, args.started, tuple(filter(None, args.overview_order.split(","))))
+        report = make_overview(args.paths, args.out, algorithms, args.paper_table, args.started, tuple(filter(None, args.overview_order.split(","))))
     else:
         report = make_report(args.paths, args.out, algorithms)
     print(Path(report["table_md"]).read_text())

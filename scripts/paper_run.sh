@@ -11,7 +11,8 @@
 # far and peak resident memory (VmHWM), rewritten every 2 s, so a piece killed with its session
 # still has a record. <run_dir>.pieces gets one line per piece: that record and how it ended (exit
 # status, or "killed" for a piece that left only its .alive file). Once the run has written
-# summary.json, its records go to $RESULTS: metrics.csv, summary.json, config.yaml, pieces.txt; and
+# summary.json, its records go to $RESULTS: metrics.csv, summary.json, config.yaml, pieces.txt,
+# checkpoints.txt (the size in bytes of each checkpoint kept at the end); and
 # the report of the one run goes to $REPORT (recipes/report.py: curves, buffer sizes, ES mean vs
 # TD3 actor). A finished run is never rewritten: calling again only copies the records.
 #
@@ -60,4 +61,5 @@ mkdir -p "$RESULTS" "$REPORT"
 cp "$DIR/metrics.csv" "$DIR/summary.json" "$RESULTS/"
 cp "$DIR/.hydra/config.yaml" "$RESULTS/config.yaml"
 cp "$DIR.pieces" "$RESULTS/pieces.txt"
+du -sb "$DIR"/checkpoints/checkpoint-* | sed "s#$DIR/##" > "$RESULTS/checkpoints.txt"  # bytes of each checkpoint kept at the end
 "$PYTHON" recipes/report.py "$RESULTS" --out "$REPORT" > /dev/null

@@ -92,16 +92,17 @@ def test_yaml_files_hold_only_what_differs_from_the_schema_defaults():
         assert OmegaConf.get_type(composed(config)) is schema.RunConfig
 
 
-def test_nothing_under_run_names_an_algorithm():
-    """The run plumbing serves any recipe: no recipe's or algorithm's name is in its code, except the
-    names that are also a component's config section (``td3``, ``es``: TD3 and OpenAI-ES)."""
+def test_nothing_under_run_or_report_names_an_algorithm():
+    """The run plumbing and the report serve any recipe: no recipe's or algorithm's name is in their
+    code, except the names that are also a component's config section (``td3``, ``es``: TD3 and
+    OpenAI-ES). The paper's table is data (``docs/results/paper_table1.csv``)."""
     from torchrl_esrl.run import schema
 
     recipes = [p for p in (ROOT / "recipes").glob("*.py") if p.stem != "report"]
     names = {p.stem for p in recipes} | {name for p in recipes for name in re.findall(r'AlgorithmInfo\(\s*"(\w+)"', p.read_text())}
     names -= {item for item in schema.RunConfig.__dataclass_fields__}
     assert {"es_td3", "cem_rl_buffers", "es_td3_buffers", "cem_rl_buffers_shared"} <= names
-    for path in (ROOT / "torchrl_esrl" / "run").glob("*.py"):
+    for path in [*(ROOT / "torchrl_esrl" / "run").glob("*.py"), *(ROOT / "torchrl_esrl" / "report").glob("*.py")]:
         found = names & set(re.findall(r"\w+", path.read_text()))
         assert not found, f"{path.name} names {sorted(found)}"
 

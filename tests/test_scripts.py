@@ -48,7 +48,9 @@ def test_paper_run_records_each_piece_a_killed_one_too_and_never_reruns_a_finish
     words = pieces[1].split()
     assert words[:4] == ["piece", "1", "commit", commit] and words[-2:] == ["exit", "0"]
     assert int(words[words.index("seconds") + 1]) > 0 and int(words[words.index("peak_rss_mib") + 1]) > 100  # torch alone is more
-    assert sorted(p.name for p in results.iterdir()) == ["config.yaml", "metrics.csv", "pieces.txt", "summary.json"]
+    assert sorted(p.name for p in results.iterdir()) == ["checkpoints.txt", "config.yaml", "metrics.csv", "pieces.txt", "summary.json"]
+    sizes = [line.split("\t") for line in (results / "checkpoints.txt").read_text().splitlines()]
+    assert sizes and all(int(size) > 1000 and name.startswith("checkpoints/checkpoint-") for size, name in sizes)
     assert (report / "results.md").exists() and (report / "es_vs_td3_Walker2d-v5.png").exists()
     assert not list(tmp_path.glob("run.piece*.alive"))
     second = call()

@@ -214,12 +214,13 @@ def test_a_task_where_td3_stays_at_the_initial_policy_is_left_out_of_the_aggrega
 
 
 # --- exact bootstrap, paired count, what the overwrites let a run say, the overview --------------------------
-from torchrl_esrl.report import overview_rows, overwrite_table, summary_table, write_iterations, write_overview  # noqa: E402
+from torchrl_esrl.report import overview_rows, overwrite_table, read_paper_table, summary_table, write_iterations, write_overview  # noqa: E402
 from torchrl_esrl.report.statistics import (aggregate_iqm, aggregate_probability_of_improvement, paired_comparison,  # noqa: E402
                                             stratified_interval, weighted_quantiles)
 
 MINIATURE = ROOT / "docs" / "results" / "runs" / "miniature"
 PAPER_RUNS = ROOT / "docs" / "results" / "runs" / "paper"
+PAPER_TABLE = ROOT / "docs" / "results" / "paper_table1.csv"  # the paper's Table 1 as printed
 
 
 def brute_force_quantiles(statistics_of_every_resample) -> list[float]:
@@ -312,13 +313,13 @@ def test_overview_cells_without_a_record_hold_no_number(tmp_path):
     runs += [run_record("Walker2d-v5", "td3", s, 400.0 + s) for s in range(5)]
     for r in runs[1:]:
         r["summary"].update(experiment="miniature", td3_frames=80_000, es_frames=0)
-    rows, experiments = overview_rows(runs, ALGORITHMS, {("Walker2d-v5", "td3", "paper")})
+    rows, experiments = overview_rows(runs, ALGORITHMS, read_paper_table(PAPER_TABLE), {("Walker2d-v5", "td3", "paper")})
     assert experiments == ["paper", "miniature"]
     cells = {(r["env"], r["algorithm"], r["experiment"]): r for r in rows}
     assert cells[("Walker2d-v5", "td3", "paper")]["status"] == "running" and "mean" not in cells[("Walker2d-v5", "td3", "paper")]
     assert cells[("Walker2d-v5", "es_td3_buffers", "miniature")]["status"] == "not run"
     assert cells[("Walker2d-v5", "td3", "miniature")]["runs"] == 5
-    _, md = write_overview(runs, tmp_path, ALGORITHMS, {("Walker2d-v5", "td3", "paper")})
+    _, md = write_overview(runs, tmp_path, ALGORITHMS, read_paper_table(PAPER_TABLE), {("Walker2d-v5", "td3", "paper")})
     text = md.read_text()
     assert "| Walker2d-v5 (Walker) | ES-TD3Buffers 0.5:0.2:0.3 | 2217 (std 1454, median 1764) | 6639.1: one run (seed 0), 2M TD3 + 109.8M ES frames | not run |" in text
     assert "| Walker2d-v5 (Walker) | TD3 | 3808 (std 339, median 3882) | running | IQM 402.0" in text
@@ -331,18 +332,16 @@ PAPER_TEX = Path(__file__).resolve().parents[2] / "shared" / "paper" / "es_td3bu
 def test_paper_table_1_is_the_papers():
     import re
 
-    from torchrl_esrl.report import PAPER_TABLE_1
-    from torchrl_esrl.report.overview import PAPER_NAMES
-
+    paper = read_paper_table(PAPER_TABLE)["entries"]
     tex = PAPER_TEX.read_text()
     table = tex[tex.index(r"\label{tab:baselines}"):tex.index(r"\end{tabular}")]
     columns = ("td3", "cem", "erl", "cem_rl", "es_td3_buffers")
     numbers = [[int(v) for v in re.findall(r"\d+", line.split("&", 2)[2])] for line in table.splitlines() if re.search(r"(Mean|Std\.|Median) *&", line)]
     assert len(numbers) == 12
     for block, paper_name in enumerate(("HalfCheetah", "Ant", "Swimmer", "Walker")):
-        env = next(e for e, name in PAPER_NAMES.items() if name == paper_name)
+        env = next(e for e, entries in paper.items() if next(iter(entries.values()))["task"] == paper_name)
         mean, std, median = numbers[3 * block:3 * block + 3]
-        assert {c: (mean[i], std[i], median[i]) for i, c in enumerate(columns)} == PAPER_TABLE_1[env]
+        assert {c: (mean[i], std[i], median[i]) for i, c in enumerate(columns)} == {a: entry["scores"] for a, entry in paper[env].items()}
 
 
 @pytest.mark.skipif(not (PAPER_RUNS / "walker2d" / "es_td3_seed0").exists(), reason="the paper-budget record is not in this checkout")

@@ -12,7 +12,7 @@ from torchrl_esrl.report.figures import (MAX_LINES, curve_panels, plot_aggregate
                                          plot_learning_curves, plot_ratio_sweep)
 from torchrl_esrl.report.findings import (overwrite_table, summary_table, write_iterations, write_overwrite_table, write_summary_table,  # noqa: F401
                                           write_timing)
-from torchrl_esrl.report.overview import PAPER_TABLE_1, overview_algorithms, overview_rows, read_started, write_overview  # noqa: F401
+from torchrl_esrl.report.overview import overview_algorithms, overview_rows, read_paper_table, read_started, write_overview  # noqa: F401
 from torchrl_esrl.report.records import Algorithms, find_runs, ratio_text, table_groups  # noqa: F401
 from torchrl_esrl.report.statistics import (holm, interquartile_mean, iqm_confidence_interval, mean_band, paired_comparison,  # noqa: F401
                                             permutation_test, probability_of_improvement)
@@ -53,10 +53,11 @@ def make_report(paths, out_dir, algorithms: Algorithms) -> dict:
             "summary": summary, "aggregate": aggregate, **written, "figures": figures}
 
 
-def make_overview(paths, out_dir, algorithms: Algorithms, started=None, order=()) -> dict:
-    """The overview alone (:func:`~torchrl_esrl.report.overview.write_overview`): ``started`` is a
-    file of runs started and not yet recorded (``<env id> <algorithm> <experiment>`` a line);
-    ``order``: the algorithms of its first rows."""
+def make_overview(paths, out_dir, algorithms: Algorithms, paper_table, started=None, order=()) -> dict:
+    """The overview alone (:func:`~torchrl_esrl.report.overview.write_overview`): ``paper_table`` is
+    the paper's table as a CSV file (:func:`~torchrl_esrl.report.overview.read_paper_table`);
+    ``started`` a file of runs started and not yet recorded (``<env id> <algorithm> <experiment>``
+    a line); ``order``: the algorithms of its first rows."""
     runs = find_runs(paths)
-    csv_path, md_path = write_overview(runs, out_dir, algorithms, read_started(started), order)
+    csv_path, md_path = write_overview(runs, out_dir, algorithms, read_paper_table(paper_table), read_started(started), order)
     return {"runs": len(runs), "overview_csv": csv_path, "overview_md": md_path, "table_md": md_path, "figures": []}

@@ -13,17 +13,29 @@ import numpy as np
 from torchrl_esrl.report.records import PAPER_RATIO, Algorithms, ci_text, frames_text, ratio_text, write_csv
 from torchrl_esrl.report.statistics import interquartile_mean, iqm_confidence_interval
 
-# es_td3buffers.tex, Table 1 ("Scores achieved on MuJoCo Environments. Baselines as reported in
-# Lee et al. 2020"): (mean, std, median) per task and algorithm, as the paper prints them. The
-# paper names the tasks without a version and does not say how many runs an entry summarises.
-PAPER_TABLE_1 = {
-    "HalfCheetah-v5": {"td3": (9630, 202, 9606), "cem": (2940, 353, 3045), "erl": (8684, 130, 8675), "cem_rl": (10725, 397, 11539), "es_td3_buffers": (10793, 778, 10862)},
-    "Ant-v5": {"td3": (4027, 403, 4587), "cem": (487, 33, 506), "erl": (3716, 673, 4240), "cem_rl": (4251, 251, 4310), "es_td3_buffers": (4532, 999, 4367)},
-    "Swimmer-v5": {"td3": (63, 9, 47), "cem": (351, 9, 361), "erl": (350, 8, 360), "cem_rl": (75, 11, 62), "es_td3_buffers": (213, 119, 174)},
-    "Walker2d-v5": {"td3": (3808, 339, 3882), "cem": (928, 50, 934), "erl": (2188, 240, 2267), "cem_rl": (4711, 155, 4637), "es_td3_buffers": (2217, 1454, 1764)},
-}
-PAPER_NAMES = {"HalfCheetah-v5": "HalfCheetah", "Ant-v5": "Ant", "Swimmer-v5": "Swimmer", "Walker2d-v5": "Walker"}
-PAPER_LABELS = {"cem": "CEM", "erl": "ERL"}  # Table 1's rows without a recipe here
+PAPER_TABLE_COLUMNS = ("env", "task", "algorithm", "label", "mean", "std", "median")
+
+
+def read_paper_table(path) -> dict:
+    """A paper's results table (``docs/results/paper_table1.csv``: the paper's Table 1 as printed):
+    ``#`` lines first, its caption, then one ``env,task,algorithm,label,mean,std,median`` row per
+    entry. Returns ``{"caption": text, "entries": env id -> algorithm -> {"task", "label",
+    "scores": (mean, std, median)}}`` in the file's order; ``task`` is the paper's name of the env,
+    ``label`` its name of the row, shown where no recipe declares the algorithm."""
+    import csv
+
+    lines = Path(path).read_text().splitlines()
+    caption = " ".join(line.lstrip("#").strip() for line in lines if line.startswith("#"))
+    reader = csv.DictReader(line for line in lines if line and not line.startswith("#"))
+    if tuple(reader.fieldnames or ()) != PAPER_TABLE_COLUMNS:
+        raise ValueError(f"{path}: columns {reader.fieldnames} (allowed: {','.join(PAPER_TABLE_COLUMNS)})")
+    entries: dict[str, dict[str, dict]] = {}
+    for row in reader:
+        scores = tuple(int(row[key]) if row[key].lstrip("-").isdigit() else float(row[key]) for key in ("mean", "std", "median"))
+        entries.setdefault(row["env"], {})[row["algorithm"]] = {"task": row["task"], "label": row["label"], "scores": scores}
+    return {"caption": caption, "entries": entries}
+
+
 OVERVIEW_COLUMNS = ("env", "algorithm", "experiment", "runs", "seeds", "td3_frames", "es_frames", "mean", "std", "median", "iqm", "iqm_ci_low", "iqm_ci_high", "status")
 
 
@@ -41,15 +53,22 @@ def _budget(summaries: list[dict]) -> str:
     return " + ".join(p for p in parts if p) + " frames" + (" (mean over runs)" if len(summaries) > 1 and len({s.get("es_frames") for s in summaries}) > 1 else "")
 
 
-def overview_algorithms(runs: list[dict], algorithms: Algorithms, order=(), started=frozenset()) -> list[str]:
-    """The overview's rows: the names in ``order``, then the other algorithms of Table 1, of the
-    runs and of ``started`` by the report's row order, then Table 1's rows without a recipe here."""
-    named = {run["summary"]["algorithm"] for run in runs} | {key[1] for key in started} | {a for paper in PAPER_TABLE_1.values() for a in paper}
-    recipes = sorted(named - set(order) - set(PAPER_LABELS), key=lambda a: algorithms.row_order((a, "")))
-    return list(order) + recipes + [a for a in PAPER_LABELS if a not in order]
+def without_recipe(paper: dict, algorithms: Algorithms) -> list[str]:
+    """The paper's rows that no recipe here declares, in the table's order."""
+    names = [a for entries in paper["entries"].values() for a in entries if a not in algorithms.infos]
+    return list(dict.fromkeys(names))
 
 
-def overview_rows(runs: list[dict], algorithms: Algorithms, started=frozenset(), order=()) -> tuple[list[dict], list[str]]:
+def overview_algorithms(runs: list[dict], algorithms: Algorithms, paper: dict, order=(), started=frozenset()) -> list[str]:
+    """The overview's rows: the names in ``order``, then the other algorithms of the paper's table,
+    of the runs and of ``started`` by the report's row order, then the paper's rows without a recipe here."""
+    named = {run["summary"]["algorithm"] for run in runs} | {key[1] for key in started} | {a for entries in paper["entries"].values() for a in entries}
+    missing = without_recipe(paper, algorithms)
+    recipes = sorted(named - set(order) - set(missing), key=lambda a: algorithms.row_order((a, "")))
+    return list(order) + recipes + [a for a in missing if a not in order]
+
+
+def overview_rows(runs: list[dict], algorithms: Algorithms, paper: dict, started=frozenset(), order=()) -> tuple[list[dict], list[str]]:
     """One row per (task, algorithm, experiment) (:func:`overview_algorithms`): the statistics of
     the recorded runs at the paper's ratio (or of none: ``status`` ``running`` or ``not run``).
     Returns the rows and the experiments, the paper's first."""
@@ -60,8 +79,8 @@ def overview_rows(runs: list[dict], algorithms: Algorithms, started=frozenset(),
             groups[(s["env"], s["algorithm"], s.get("experiment", "?"))].append(s)
     experiments = sorted({key[2] for key in groups} | {key[2] for key in started}, key=lambda e: (e != "paper", e))
     rows = []
-    for env in PAPER_TABLE_1:
-        for algorithm in overview_algorithms(runs, algorithms, order, started):
+    for env in paper["entries"]:
+        for algorithm in overview_algorithms(runs, algorithms, paper, order, started):
             for experiment in experiments:
                 summaries = sorted(groups.get((env, algorithm, experiment), []), key=lambda s: s["seed"])
                 row = {"env": env, "algorithm": algorithm, "experiment": experiment, "runs": len(summaries), "seeds": " ".join(str(s["seed"]) for s in summaries)}
@@ -86,32 +105,36 @@ def _cell(row: dict) -> str:
             f"{row['runs']} runs, {row['budget']}")
 
 
-def write_overview(runs: list[dict], out_dir: Path, algorithms: Algorithms, started=frozenset(), order=()) -> tuple[Path, Path]:
-    """``overview.csv`` and ``overview.md``: :func:`overview_rows` beside :data:`PAPER_TABLE_1`; a
-    row with a ratio is labelled with the paper's."""
+def write_overview(runs: list[dict], out_dir: Path, algorithms: Algorithms, paper: dict, started=frozenset(), order=()) -> tuple[Path, Path]:
+    """``overview.csv`` and ``overview.md``: :func:`overview_rows` beside the paper's table
+    (:func:`read_paper_table`), its tasks in its order; a row with a ratio is labelled with the paper's."""
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
-    rows, experiments = overview_rows(runs, algorithms, started, order)
+    rows, experiments = overview_rows(runs, algorithms, paper, started, order)
     with_ratio = {run["summary"]["algorithm"] for run in runs if ratio_text(run["summary"])} | {algorithms.reference}
+    missing = set(without_recipe(paper, algorithms))
     csv_path, md_path = out_dir / "overview.csv", out_dir / "overview.md"
     write_csv(csv_path, OVERVIEW_COLUMNS, [{key: r.get(key, "") for key in OVERVIEW_COLUMNS} for r in rows])
     cells = {(r["env"], r["algorithm"], r["experiment"]): r for r in rows}
     lines = ["| task | row | paper, Table 1: mean (std, median) | " + " | ".join(f"ours, `experiment={e}`" for e in experiments) + " |",
              "|---|---|---|" + "---|" * len(experiments)]
-    for env, paper in PAPER_TABLE_1.items():
-        for algorithm in overview_algorithms(runs, algorithms, order, started):
+    for env, entries in paper["entries"].items():
+        task = next(iter(entries.values()))["task"]
+        for algorithm in overview_algorithms(runs, algorithms, paper, order, started):
             ours = [cells[(env, algorithm, e)] for e in experiments]
-            if algorithm not in paper and all(r["status"] != "recorded" for r in ours):
+            if algorithm not in entries and all(r["status"] != "recorded" for r in ours):
                 continue
-            name = PAPER_LABELS.get(algorithm) or algorithms.label(algorithm, PAPER_RATIO if algorithm in with_ratio else "")
-            paper_cell = "{} (std {}, median {})".format(*paper[algorithm]) if algorithm in paper else "not in Table 1"
-            ours_cells = [_cell(r) if algorithm not in PAPER_LABELS else "no recipe here" for r in ours]
-            lines.append(f"| {env} ({PAPER_NAMES[env]}) | {name} | {paper_cell} | " + " | ".join(ours_cells) + " |")
+            if algorithm in missing:
+                name = next(e[algorithm]["label"] for e in paper["entries"].values() if algorithm in e)
+            else:
+                name = algorithms.label(algorithm, PAPER_RATIO if algorithm in with_ratio else "")
+            paper_cell = "{} (std {}, median {})".format(*entries[algorithm]["scores"]) if algorithm in entries else "not in Table 1"
+            ours_cells = [_cell(r) if algorithm not in missing else "no recipe here" for r in ours]
+            lines.append(f"| {env} ({task}) | {name} | {paper_cell} | " + " | ".join(ours_cells) + " |")
     lines += [
         "",
-        "Paper: Table 1 of the paper as printed (ES-TD3Buffers at 20 iterations of 100k TD3 frames, 2M in all, and 50 ES",
-        "generations an iteration; the baselines as reported in Lee et al. 2020); it gives no run count and names the tasks",
-        "without a version. Ours: the final return of the returned policy (the ES mean for the ES rows) over 10 deterministic",
+        f"Paper: {paper['caption']}",
+        "Ours: the final return of the returned policy (the ES mean for the ES rows) over 10 deterministic",
         "episodes, v5 tasks, per `experiment` preset; each cell says how many runs it holds and their frames. One run is a run,",
         "not a statistic. IQM CI: 95% percentile bootstrap, exact over every resample of the runs. `running`: started, no",
         "record yet; `not run`: no record and not started; a cell without a record holds no number.",
