@@ -21,7 +21,7 @@ from hydra.utils import get_object
 from omegaconf import DictConfig, OmegaConf
 
 from torchrl_esrl.errors import ConfigError
-from torchrl_esrl.run.schema import RunConfig, Renamed
+from torchrl_esrl.run.schema import Renamed, RunConfig
 
 
 def section_of(annotation):

@@ -5,9 +5,9 @@ The defaults are the paper's hyper-parameters (Table 2, Sections 4.2-4.3); every
 docs/deviations.md. One schema, :class:`RunConfig`, holds the section of every component (env, TD3,
 actor, OpenAI-ES, CEM, buffers...); a recipe's top config (``conf/<recipe>.yaml``) lists it first,
 so Hydra rejects unknown keys and wrong types while composing, then sets what that recipe changes
-(a warm-up, a section left None here). The YAML files hold only what differs from the defaults here. A field's check (``metadata["check"]``, made by
-:func:`number`, :func:`one_of`...) is run by :func:`torchrl_esrl.run.config.validate_config`; checks
-across fields live there.
+(a warm-up, a section left None here). The YAML files hold only what differs from the defaults
+here. A field's check (``metadata["check"]``, made by :func:`number`, :func:`one_of`...) is run by
+:func:`torchrl_esrl.run.config.validate_config`; checks across fields live there.
 
 To add a key: add its field here, with its default and check. If runs checkpointed before it
 existed must resume, make it :func:`added` (their configs get the default); a key that changes
