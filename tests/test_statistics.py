@@ -332,16 +332,16 @@ PAPER_TEX = Path(__file__).resolve().parents[2] / "shared" / "paper" / "es_td3bu
 def test_paper_table_1_is_the_papers():
     import re
 
-    paper = read_paper_table(PAPER_TABLE)["entries"]
+    paper = read_paper_table(PAPER_TABLE)
     tex = PAPER_TEX.read_text()
     table = tex[tex.index(r"\label{tab:baselines}"):tex.index(r"\end{tabular}")]
     columns = ("td3", "cem", "erl", "cem_rl", "es_td3_buffers")
     numbers = [[int(v) for v in re.findall(r"\d+", line.split("&", 2)[2])] for line in table.splitlines() if re.search(r"(Mean|Std\.|Median) *&", line)]
     assert len(numbers) == 12
     for block, paper_name in enumerate(("HalfCheetah", "Ant", "Swimmer", "Walker")):
-        env = next(e for e, entries in paper.items() if next(iter(entries.values()))["task"] == paper_name)
+        env = next(e for e, task in paper["tasks"].items() if task == paper_name)
         mean, std, median = numbers[3 * block:3 * block + 3]
-        assert {c: (mean[i], std[i], median[i]) for i, c in enumerate(columns)} == {a: entry["scores"] for a, entry in paper[env].items()}
+        assert {c: (mean[i], std[i], median[i]) for i, c in enumerate(columns)} == paper["scores"][env]
 
 
 @pytest.mark.skipif(not (PAPER_RUNS / "walker2d" / "es_td3_seed0").exists(), reason="the paper-budget record is not in this checkout")

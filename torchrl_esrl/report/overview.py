@@ -19,9 +19,9 @@ PAPER_TABLE_COLUMNS = ("env", "task", "algorithm", "label", "mean", "std", "medi
 def read_paper_table(path) -> dict:
     """A paper's results table (``docs/results/paper_table1.csv``: the paper's Table 1 as printed):
     ``#`` lines first, its caption, then one ``env,task,algorithm,label,mean,std,median`` row per
-    entry. Returns ``{"caption": text, "entries": env id -> algorithm -> {"task", "label",
-    "scores": (mean, std, median)}}`` in the file's order; ``task`` is the paper's name of the env,
-    ``label`` its name of the row, shown where no recipe declares the algorithm."""
+    entry. Returns ``{"caption": text, "scores": env id -> algorithm -> (mean, std, median),
+    "tasks": env id -> the paper's name of it, "labels": algorithm -> the paper's name of the row}``,
+    in the file's order; a label is shown where no recipe declares the algorithm."""
     import csv
 
     lines = Path(path).read_text().splitlines()
@@ -29,11 +29,12 @@ def read_paper_table(path) -> dict:
     reader = csv.DictReader(line for line in lines if line and not line.startswith("#"))
     if tuple(reader.fieldnames or ()) != PAPER_TABLE_COLUMNS:
         raise ValueError(f"{path}: columns {reader.fieldnames} (allowed: {','.join(PAPER_TABLE_COLUMNS)})")
-    entries: dict[str, dict[str, dict]] = {}
+    table: dict = {"caption": caption, "scores": {}, "tasks": {}, "labels": {}}
     for row in reader:
         scores = tuple(int(row[key]) if row[key].lstrip("-").isdigit() else float(row[key]) for key in ("mean", "std", "median"))
-        entries.setdefault(row["env"], {})[row["algorithm"]] = {"task": row["task"], "label": row["label"], "scores": scores}
-    return {"caption": caption, "entries": entries}
+        table["scores"].setdefault(row["env"], {})[row["algorithm"]] = scores
+        table["tasks"][row["env"]], table["labels"][row["algorithm"]] = row["task"], row["label"]
+    return table
 
 
 OVERVIEW_COLUMNS = ("env", "algorithm", "experiment", "runs", "seeds", "td3_frames", "es_frames", "mean", "std", "median", "iqm", "iqm_ci_low", "iqm_ci_high", "status")
@@ -55,14 +56,13 @@ def _budget(summaries: list[dict]) -> str:
 
 def without_recipe(paper: dict, algorithms: Algorithms) -> list[str]:
     """The paper's rows that no recipe here declares, in the table's order."""
-    names = [a for entries in paper["entries"].values() for a in entries if a not in algorithms.infos]
-    return list(dict.fromkeys(names))
+    return [a for a in paper["labels"] if a not in algorithms.infos]
 
 
 def overview_algorithms(runs: list[dict], algorithms: Algorithms, paper: dict, order=(), started=frozenset()) -> list[str]:
     """The overview's rows: the names in ``order``, then the other algorithms of the paper's table,
     of the runs and of ``started`` by the report's row order, then the paper's rows without a recipe here."""
-    named = {run["summary"]["algorithm"] for run in runs} | {key[1] for key in started} | {a for entries in paper["entries"].values() for a in entries}
+    named = {run["summary"]["algorithm"] for run in runs} | {key[1] for key in started} | set(paper["labels"])
     missing = without_recipe(paper, algorithms)
     recipes = sorted(named - set(order) - set(missing), key=lambda a: algorithms.row_order((a, "")))
     return list(order) + recipes + [a for a in missing if a not in order]
@@ -79,7 +79,7 @@ def overview_rows(runs: list[dict], algorithms: Algorithms, paper: dict, started
             groups[(s["env"], s["algorithm"], s.get("experiment", "?"))].append(s)
     experiments = sorted({key[2] for key in groups} | {key[2] for key in started}, key=lambda e: (e != "paper", e))
     rows = []
-    for env in paper["entries"]:
+    for env in paper["scores"]:
         for algorithm in overview_algorithms(runs, algorithms, paper, order, started):
             for experiment in experiments:
                 summaries = sorted(groups.get((env, algorithm, experiment), []), key=lambda s: s["seed"])
@@ -118,19 +118,15 @@ def write_overview(runs: list[dict], out_dir: Path, algorithms: Algorithms, pape
     cells = {(r["env"], r["algorithm"], r["experiment"]): r for r in rows}
     lines = ["| task | row | paper, Table 1: mean (std, median) | " + " | ".join(f"ours, `experiment={e}`" for e in experiments) + " |",
              "|---|---|---|" + "---|" * len(experiments)]
-    for env, entries in paper["entries"].items():
-        task = next(iter(entries.values()))["task"]
+    for env, entries in paper["scores"].items():
         for algorithm in overview_algorithms(runs, algorithms, paper, order, started):
             ours = [cells[(env, algorithm, e)] for e in experiments]
             if algorithm not in entries and all(r["status"] != "recorded" for r in ours):
                 continue
-            if algorithm in missing:
-                name = next(e[algorithm]["label"] for e in paper["entries"].values() if algorithm in e)
-            else:
-                name = algorithms.label(algorithm, PAPER_RATIO if algorithm in with_ratio else "")
-            paper_cell = "{} (std {}, median {})".format(*entries[algorithm]["scores"]) if algorithm in entries else "not in Table 1"
+            name = paper["labels"][algorithm] if algorithm in missing else algorithms.label(algorithm, PAPER_RATIO if algorithm in with_ratio else "")
+            paper_cell = "{} (std {}, median {})".format(*entries[algorithm]) if algorithm in entries else "not in Table 1"
             ours_cells = [_cell(r) if algorithm not in missing else "no recipe here" for r in ours]
-            lines.append(f"| {env} ({task}) | {name} | {paper_cell} | " + " | ".join(ours_cells) + " |")
+            lines.append(f"| {env} ({paper['tasks'][env]}) | {name} | {paper_cell} | " + " | ".join(ours_cells) + " |")
     lines += [
         "",
         f"Paper: {paper['caption']}",
