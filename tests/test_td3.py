@@ -563,6 +563,91 @@ def test_loss_gradient_is_scaled_by_the_incoming_gradient_and_accumulates_withou
         torch.testing.assert_close(grads[ManualGradTD3Loss, which, 2.0], grads[TD3Loss, which, 2.0], rtol=1e-5, atol=1e-6)
 
 
+def _manual_losses(seed=0):
+    """A ManualGradTD3Loss on fixed weights and a batch: (loss module, its critic and actor parameters, batch)."""
+    from torchrl.data import Bounded
+
+    spec = Bounded(-torch.ones(6), torch.ones(6), shape=(6,))
+    torch.manual_seed(seed)
+    actor, critic = make_actor(17, spec, (32, 32)), make_critic(17, 6, (32, 32))
+    loss = ManualGradTD3Loss(actor_network=actor, qvalue_network=critic, action_spec=spec, num_qvalue_nets=2, loss_function="l2")
+    return loss, {"value": list(loss.qvalue_network_params.values(True, True)), "actor": list(actor.parameters())}, _random_transitions(64, 17, 6)
+
+
+def _grads_after(which, run_backward, watch=None):
+    """The .grad of ``which`` loss's parameters after ``run_backward(loss_tensor)``; ``watch(loss_tensor,
+    parameters)`` first registers what must see the backward and returns how many calls it saw."""
+    loss, parameters, batch = _manual_losses()
+    torch.manual_seed(3)
+    value = getattr(loss, f"{which}_loss")(batch)[0]
+    calls = watch(value, parameters[which]) if watch else None
+    run_backward(value)
+    return [p.grad for p in parameters[which]], calls, value
+
+
+def _watch_parameter_hook(value, parameters):
+    calls = []
+    parameters[-1].register_hook(lambda grad: calls.append(1))
+    return calls
+
+
+def _watch_post_accumulate_hook(value, parameters):
+    calls = []
+    parameters[0].register_post_accumulate_grad_hook(lambda p: calls.append(1))
+    return calls
+
+
+def _watch_loss_hook(value, parameters):
+    calls = []
+    value.register_hook(lambda grad: calls.append(1))
+    return calls
+
+
+def _watch_node_hook(value, parameters):
+    calls = []
+    value.grad_fn.register_hook(lambda grad_inputs, grad_outputs: calls.append(1))
+    return calls
+
+
+def _watch_node_prehook(value, parameters):
+    calls = []
+    value.grad_fn.register_prehook(lambda grad_outputs: calls.append(1))
+    return calls
+
+
+def _watch_retained_grad(value, parameters):
+    value.retain_grad()
+    return [1]
+
+
+WATCHERS = [_watch_parameter_hook, _watch_post_accumulate_hook, _watch_loss_hook, _watch_node_hook, _watch_node_prehook, _watch_retained_grad]
+
+
+@pytest.mark.parametrize("which", ["value", "actor"])
+def test_the_direct_backward_puts_what_loss_backward_puts_into_grad(which):
+    """manual_grad.backward (what TD3.backward calls) leaves .grad bit for bit as loss.backward() does,
+    frees the graph as it does (a second backward fails the same way), and where anything watches the
+    backward (a hook on a parameter, the loss or its node, a retained gradient) the engine runs it."""
+    from torchrl_esrl.objectives.manual_grad import backward
+
+    engine, _, _ = _grads_after(which, lambda value: value.backward())
+    direct, _, value = _grads_after(which, backward)
+    assert all(torch.equal(a, b) and a.stride() == b.stride() for a, b in zip(direct, engine))
+    with pytest.raises(RuntimeError, match="backward through the graph a second time"):
+        value.backward()
+    for watch in WATCHERS:
+        watched, calls, value = _grads_after(which, backward, watch)
+        assert calls, watch.__name__  # the hook ran: the engine did the backward
+        assert all(torch.equal(a, b) for a, b in zip(watched, engine)), watch.__name__
+    # a .grad already there is added to, as by the engine
+    loss, parameters, batch = _manual_losses()
+    for p in parameters[which]:
+        p.grad = torch.ones_like(p)
+    torch.manual_seed(3)
+    backward(getattr(loss, f"{which}_loss")(batch)[0])
+    assert all(torch.equal(p.grad, g + 1) for p, g in zip(parameters[which], engine))
+
+
 @pytest.mark.parametrize(
     ("change", "reason"),
     [

@@ -276,18 +276,47 @@ def optimizer_step_hooks(optimizer: torch.optim.Optimizer) -> bool:
     )
 
 
-def module_hooks(modules) -> bool:
-    """Whether calling any of ``modules`` would run forward or backward hooks, a module's own or
-    torch's global ones. The hand-written TD3 forwards do not call the modules and hand such networks
-    to ``TD3Loss``; torch keeps the hooks in private dicts with no public getter."""
+def module_hook_dicts(modules) -> tuple:
+    """The dicts in which ``modules`` keep their forward and backward hooks, for :func:`module_hooks`
+    (torch registers a hook into these same dicts, in place)."""
+    return tuple(hooks for m in modules for hooks in (m._forward_hooks, m._forward_pre_hooks, m._backward_hooks, m._backward_pre_hooks))
+
+
+def module_hooks(hook_dicts: tuple) -> bool:
+    """Whether calling the modules of ``hook_dicts`` (:func:`module_hook_dicts`) would run forward or
+    backward hooks, a module's own or torch's global ones. The hand-written TD3 forwards do not call
+    the modules and hand such networks to ``TD3Loss``; torch keeps the hooks in private dicts with no
+    public getter."""
     from torch.nn.modules import module as torch_module
 
-    if (
+    return bool(
         torch_module._global_forward_hooks or torch_module._global_forward_pre_hooks
         or torch_module._global_backward_hooks or torch_module._global_backward_pre_hooks
-    ):
-        return True
-    return any(m._forward_hooks or m._forward_pre_hooks or m._backward_hooks or m._backward_pre_hooks for m in modules)
+    ) or any(hook_dicts)
+
+
+def gradient_hooks(tensor: torch.Tensor) -> bool:
+    """Whether hooks watch ``tensor``'s gradient (``register_hook``, ``register_post_accumulate_grad_hook``):
+    the direct backward of the hand-written TD3 losses then leaves it to the autograd engine. torch
+    keeps them in private attributes with no public getter."""
+    return bool(tensor._backward_hooks) or bool(getattr(tensor, "_post_accumulate_grad_hooks", None))
+
+
+def backward_node_class(function: type) -> type:
+    """The class of the graph nodes a ``torch.autograd.Function`` subclass creates (``Function._backward_cls``,
+    made by its metaclass; no public name)."""
+    return function._backward_cls
+
+
+def without_loss_contexts(loss_class: type, *names: str) -> None:
+    """Give ``loss_class`` its own ``names`` methods without the wrapper TorchRL's loss metaclass
+    (``_LossMeta``) puts around every public ``*loss`` method: ``set_exploration_type`` and
+    ``set_recurrent_mode`` contexts entered and left on each call. They steer the modules a loss
+    calls; the hand-written TD3 losses call none (where they hand over, ``TD3Loss``'s own wrapped
+    methods run), and the two contexts cost about as much as a small network's forward."""
+    for name in names:
+        method = loss_class.__dict__[name]
+        setattr(loss_class, name, getattr(method, "__wrapped__", method))
 
 
 def detached_qvalue_params(loss):

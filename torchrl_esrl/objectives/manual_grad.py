@@ -18,8 +18,8 @@ from torchrl.objectives.value import TD0Estimator
 
 from torchrl_esrl.modules.networks import describe_actor, describe_mlp, squash
 from torchrl_esrl.torchrl_private import (
-    detached_qvalue_params, loss_priority_weight, module_hooks, overridden_td3_loss_internals, reduce_loss,
-    reweights_or_masks, td3_loss_default_keys,
+    backward_node_class, detached_qvalue_params, gradient_hooks, loss_priority_weight, module_hook_dicts, module_hooks,
+    overridden_td3_loss_internals, reduce_loss, reweights_or_masks, td3_loss_default_keys, without_loss_contexts,
 )
 
 
@@ -62,9 +62,15 @@ def _tanh(x: torch.Tensor) -> torch.Tensor:
     return x
 
 
-_ACTIVATIONS = {"tanh": _tanh, "relu": torch.relu, None: None}  # the kernels of FAST_ACTIVATIONS (None: no activation)
+def _relu(x: torch.Tensor) -> torch.Tensor:
+    """Hidden ReLU of the hand-written forwards: in place on ``x`` (a fresh layer output) where no
+    gradient is recorded, ``torch.relu`` otherwise (the same values)."""
+    return torch.relu(x) if torch.is_grad_enabled() and x.requires_grad else x.relu_()
+
+
+_ACTIVATIONS = {"tanh": _tanh, "relu": _relu, None: None}  # the kernels of FAST_ACTIVATIONS (None: no activation)
 # d activation: (gradient w.r.t. the output, the output) -> gradient w.r.t. the input, as autograd computes it
-_ACTIVATION_BACKWARD = {_tanh: torch.ops.aten.tanh_backward, torch.relu: lambda grad, out: torch.ops.aten.threshold_backward(grad, out, 0)}
+_ACTIVATION_BACKWARD = {_tanh: torch.ops.aten.tanh_backward, _relu: lambda grad, out: torch.ops.aten.threshold_backward(grad, out, 0)}
 
 
 class ManualGradTD3Loss(TD3Loss):
@@ -157,7 +163,7 @@ class ManualGradTD3Loss(TD3Loss):
         keys = estimator.tensor_keys
         if (keys.reward, keys.done, keys.terminated) != ("reward", "done", "terminated"):
             return "value estimator keys other than the defaults"
-        if module_hooks(layout.modules):
+        if module_hooks(layout.hook_dicts):
             return "module hooks"
         if torch.is_autocast_enabled(layout.device_type):
             return "autocast"
@@ -214,6 +220,9 @@ class ManualGradTD3Loss(TD3Loss):
         return _ManualGradLayout(self, _named_kernels(actor.mlp), _named_kernels(critic_mlp))
 
 
+without_loss_contexts(ManualGradTD3Loss, "value_loss", "actor_loss")
+
+
 def _named_kernels(mlp) -> list[tuple[str, object]]:
     """``[(Linear's name, kernel of the activation after it or None), ...]`` of an MLP description."""
     return [(layer.name, _ACTIVATIONS[layer.activation]) for layer in mlp.layers]
@@ -245,6 +254,7 @@ class _CriticLoss(torch.autograd.Function):
     @staticmethod
     @once_differentiable
     def backward(ctx, grad_loss, _grad_qvalue, _grad_td_error):
+        _released(ctx)
         error, *saved = ctx.saved_tensors
         count = 2 * len(ctx.activations)
         if grad_loss is None:
@@ -284,6 +294,7 @@ class _ActorLoss(torch.autograd.Function):
     @staticmethod
     @once_differentiable
     def backward(ctx, grad_loss, _grad_value):
+        _released(ctx)
         activations, clamp, non_trivial = ctx.spec
         low, high, critic1 = ctx.constants
         count = 2 * len(activations)
@@ -302,6 +313,69 @@ class _ActorLoss(torch.autograd.Function):
             grad = torch.where((squashed >= -1 + eps) & (squashed <= 1 - eps), grad, 0.0)
         grads, _ = _backward(_layers(parameters, activations), actor_inputs, torch.ops.aten.tanh_backward(grad, squashed), ctx.needs_input_grad[3:])
         return None, None, None, *grads
+
+
+def _noting_hooks(function: type[torch.autograd.Function], outputs: int) -> type:
+    """The class of ``function``'s graph nodes, made to note a hook registered on a node
+    (``register_hook``, ``register_prehook``: torch keeps node hooks in C++ with no getter), so that
+    :func:`backward` leaves such a node to the autograd engine; ``outputs``: the number of
+    ``function``'s forward outputs."""
+    node_class = backward_node_class(function)
+    for name in ("register_hook", "register_prehook"):
+        def register(node, hook, _register=getattr(node_class, name)):
+            node.hooked = True
+            return _register(node, hook)
+
+        setattr(node_class, name, register)
+    node_class.outputs = outputs
+    return node_class
+
+
+_LOSS_NODES = (_noting_hooks(_CriticLoss, 3), _noting_hooks(_ActorLoss, 2))
+
+
+def backward(loss: torch.Tensor) -> None:
+    """``loss.backward()``, the engine's work done here where it is only this: ``loss`` is the loss
+    output of :class:`_CriticLoss` or :class:`_ActorLoss`, whose backward gives each parameter its
+    gradient, which goes into an empty ``.grad``. Then that backward is called directly and its
+    gradients are put into ``.grad`` as the engine would put them (the same tensors, tests/test_td3.py),
+    without the engine's per-call bookkeeping. Anything more goes to ``loss.backward()``: an extra loss
+    term, a ``.grad`` already there, a hook on the loss, its node or a parameter, a parameter that is
+    not a leaf, anomaly detection."""
+    node = loss.grad_fn
+    leaves = _direct_leaves(loss, node) if type(node) in _LOSS_NODES else None
+    if leaves is None:
+        loss.backward()
+        return
+    grads = node.apply(torch.ones_like(loss), *(None,) * (node.outputs - 1))  # once_differentiable: without grad mode, as in the engine
+    for leaf, grad in zip(leaves, grads[len(grads) - len(leaves) :]):  # the tensor inputs come last
+        if leaf is not None and grad is not None:
+            leaf.grad = grad if grad.stride() == leaf.stride() else torch.empty_like(leaf).copy_(grad)
+    node.released = True  # as the engine frees the graph: a second backward through it fails
+
+
+def _released(ctx) -> None:
+    """Raise what the engine raises on a second backward through a graph it has freed, where
+    :func:`backward` ran this node directly (its saved tensors stay until the loss is dropped)."""
+    if getattr(ctx, "released", False):
+        raise RuntimeError(
+            "Trying to backward through the graph a second time (or directly access saved tensors after they have "
+            "already been freed). Specify retain_graph=True if you need to backward through the graph a second time."
+        )
+
+
+def _direct_leaves(loss: torch.Tensor, node) -> list | None:
+    """For :func:`backward`: the leaf tensor behind each tensor input of ``node`` (None for an input
+    without gradient), or None where the engine must run (see there)."""
+    if loss.output_nr != 0 or getattr(node, "hooked", False) or loss.retains_grad or gradient_hooks(loss) or torch.is_anomaly_enabled():
+        return None
+    leaves = []
+    for next_node, _ in node.next_functions:
+        leaf = None if next_node is None else getattr(next_node, "variable", None)  # AccumulateGrad's leaf
+        if next_node is not None and (leaf is None or leaf.grad is not None or gradient_hooks(leaf)):
+            return None
+        leaves.append(leaf)
+    return leaves
 
 
 def _layers(parameters, activations) -> list:
@@ -376,5 +450,5 @@ class _ManualGradLayout:
         self.actor_constants = (*self.bounds, critic1)
         tanh_module = loss.actor_network.module[1]
         self.actor_spec = (tuple(act for _, act in actor_mlp), bool(tanh_module.clamp), bool(tanh_module.non_trivial))
-        self.modules = (*loss.actor_network.modules(), *loss.qvalue_network.modules())
+        self.hook_dicts = module_hook_dicts((*loss.actor_network.modules(), *loss.qvalue_network.modules()))
         self.device_type = self.critic_parameters[0].device.type

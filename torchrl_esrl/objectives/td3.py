@@ -14,7 +14,7 @@ from tensordict.nn import TensorDictSequential
 from torchrl.modules import AdditiveGaussianModule
 from torchrl.objectives import SoftUpdate, TD3Loss
 
-from torchrl_esrl.objectives.manual_grad import ManualGradTD3Loss, TD3LossQ1Actor
+from torchrl_esrl.objectives.manual_grad import ManualGradTD3Loss, TD3LossQ1Actor, backward
 from torchrl_esrl.torchrl_private import foreach_lerp_, fused_adam_step, soft_update_tensors
 
 __all__ = ["TD3", "ForeachSoftUpdate", "ManualGradTD3Loss", "TD3LossQ1Actor"]
@@ -152,8 +152,10 @@ class TD3:
     def backward(self, loss: torch.Tensor, optimizer: torch.optim.Optimizer) -> None:
         """``loss.backward()`` before ``optimizer`` (critic or actor Adam) steps: the place for a
         subclass to add a loss term (``super().backward(loss + extra, optimizer)``) or to edit the
-        gradients after it (``torch.nn.utils.clip_grad_norm_(optimizer.param_groups[0]["params"], c)``)."""
-        loss.backward()
+        gradients after it (``torch.nn.utils.clip_grad_norm_(optimizer.param_groups[0]["params"], c)``).
+        The hand-written losses' gradients go into ``.grad`` as ``loss.backward()`` puts them
+        (:func:`~torchrl_esrl.objectives.manual_grad.backward`)."""
+        backward(loss)
 
     def _step(self, optimizer: torch.optim.Adam) -> None:
         """``optimizer.step()``; fused Adam as one direct kernel call (same arithmetic)."""
