@@ -14,6 +14,8 @@ method. Methods, interleaved in one run:
                 actor loss, hand-written gradients beneath loss.backward()) + ForeachSoftUpdate + fused Adam, 1 thread
   torchrl_fast_2threads  the same on 2 threads (the TD3 phase's ``td3.num_threads`` default on 2 cores, as the
                 recipes run it)
+  torchrl_fast_engine_2threads  the same with ``loss.backward()`` run by the autograd engine, as with an extra
+                loss term or a gradient hook (``TD3.backward`` otherwise calls the hand-written backward itself)
 
 Each method sets its thread count before every call. The process runs under libgomp's own
 (spinning) wait policy, as the recipes do; ``--omp-passive`` runs it under
@@ -101,10 +103,19 @@ def run(capacity: int = 1_000_000, repeats: int = 7, calls: int = 50, env_id: st
         td3 = TD3(make_actor(obs_dim, spec), make_critic(obs_dim, act_dim), spec, **kwargs)
         return lambda: td3.update(buffer.sample())
 
+    def engine(**kwargs):
+        torch.manual_seed(0)
+        td3 = EngineTD3(make_actor(obs_dim, spec), make_critic(obs_dim, act_dim), spec, **kwargs)
+        return lambda: td3.update(buffer.sample())
+
     def plain(**kwargs):
         torch.manual_seed(0)
         td3 = PlainTD3(obs_dim, act_dim, **kwargs)
         return lambda: td3.update(buffer.sample())
+
+    class EngineTD3(TD3):
+        def backward(self, loss, optimizer):
+            loss.backward()
 
     def threads(n, fn):
         def call():
@@ -120,6 +131,7 @@ def run(capacity: int = 1_000_000, repeats: int = 7, calls: int = 50, env_id: st
         "torchrl_stock": threads(1, torchrl()),
         "torchrl_fast": threads(1, torchrl(**FAST_TD3)),
         "torchrl_fast_2threads": threads(2, torchrl(**FAST_TD3)),
+        "torchrl_fast_engine_2threads": threads(2, engine(**FAST_TD3)),
     }
     timings = interleaved(methods, calls=calls, repeats=repeats, warmup=10)
     base = timings["plain"]["s_per_call"]

@@ -181,6 +181,18 @@ def scale_critic_gradient(td3):
     weight.register_hook(lambda grad: grad * scale)
 
 
+def zero_actor_gradient_rows(td3):
+    """A post-accumulate-grad hook on the actor's first weight: every second row of its ``.grad``
+    zeroed once the gradient is in ``.grad``."""
+    weight = td3.actor[0].module[0].weight
+    keep = (torch.arange(weight.shape[0]) % 2 == 1).unsqueeze(-1)
+
+    def zero_rows(parameter):
+        parameter.grad.mul_(keep)
+
+    weight.register_post_accumulate_grad_hook(zero_rows)
+
+
 def freeze_actor_layer(td3):
     td3.actor[0].module[0].requires_grad_(False)
 
@@ -290,6 +302,7 @@ BACKWARD = [
     Case("backward-clip-grad-norm", td3=td3_built(ClippedTD3), reaches=LOSS_PARTS, pieces=MANUAL_GRADIENTS),
     Case("clip-in-step-pre-hook", td3=td3_edited(clip_in_step_pre_hooks), reaches=LOSS_PARTS, pieces={**MANUAL_GRADIENTS, "adam": "fast"}),
     Case("critic-gradient-hook", td3=td3_edited(scale_critic_gradient), reaches=LOSS_PARTS, pieces=MANUAL_GRADIENTS),
+    Case("actor-post-accumulate-grad-hook", td3=td3_edited(zero_actor_gradient_rows), reaches=LOSS_PARTS, pieces=MANUAL_GRADIENTS),
     Case("actor-frozen-layer", td3=td3_edited(freeze_actor_layer), reaches=LOSS_PARTS, pieces=MANUAL_GRADIENTS),
     Case("critic-frozen-layer", td3=td3_edited(freeze_critic_layer), reaches=LOSS_PARTS, pieces=MANUAL_GRADIENTS),
 ]

@@ -166,6 +166,39 @@ def test_td3_loss_helpers(td3_loss):
     assert torch.allclose(torchrl_private.reduce_loss(td3_loss, value, data, None), value.mean())  # reduction "mean"
 
 
+def test_gradient_hooks_and_backward_node_class_see_what_torch_holds():
+    """gradient_hooks sees a tensor hook and a post-accumulate-grad hook; backward_node_class is the
+    class of the nodes a Function makes; without_loss_contexts unwraps TorchRL's loss-method wrapper."""
+    weight = torch.randn(3, requires_grad=True)
+    assert not torchrl_private.gradient_hooks(weight)
+    handle = weight.register_hook(lambda grad: grad)
+    assert torchrl_private.gradient_hooks(weight)
+    handle.remove()
+    assert not torchrl_private.gradient_hooks(weight)
+    weight.register_post_accumulate_grad_hook(lambda parameter: None)
+    assert torchrl_private.gradient_hooks(weight)
+
+    class Square(torch.autograd.Function):
+        @staticmethod
+        def forward(ctx, x):
+            return x * x
+
+        @staticmethod
+        def backward(ctx, grad):
+            return grad
+
+    assert type(Square.apply(torch.randn(3, requires_grad=True)).grad_fn) is torchrl_private.backward_node_class(Square)
+
+    class Loss(TD3Loss):
+        def value_loss(self, tensordict):
+            return "own"
+
+    wrapped = Loss.__dict__["value_loss"]
+    assert wrapped.__wrapped__ is not wrapped  # TorchRL's metaclass wraps the public *loss methods
+    torchrl_private.without_loss_contexts(Loss, "value_loss")
+    assert Loss.__dict__["value_loss"] is wrapped.__wrapped__
+
+
 def test_soft_update_tensors_give_softupdate_step(td3_loss):
     import copy
 
