@@ -11,7 +11,8 @@ version, the order alternating between rounds; the ratio of each round (working 
 reported with its median and quartiles. Drift of the machine within a round moves both versions.
 
 Usage: ``python -m benchmarks.against_commit --base 23208de [--env Walker2d-v5] [--rounds 40]
-[--calls 50] [--threads N] [--out PATH]``.
+[--calls 50] [--threads N] [--capacity N] [--out PATH]``. The base package stays imported (its
+modules register what they register, Hydra schemas included): run it as its own process.
 """
 from __future__ import annotations
 
@@ -109,9 +110,10 @@ def main(argv=None) -> dict:
     parser.add_argument("--rounds", type=int, default=40)
     parser.add_argument("--calls", type=int, default=50)
     parser.add_argument("--threads", type=int, default=None, help="torch threads (default: the process's)")
+    parser.add_argument("--capacity", type=int, default=25_000, help="items per buffer (K at the paper's settings)")
     parser.add_argument("--out", default=None)
     args = parser.parse_args(argv)
-    report = save_report(run(args.base, args.env, args.rounds, args.calls, args.threads), args.out)
+    report = save_report(run(args.base, args.env, args.rounds, args.calls, args.threads, args.capacity), args.out)
     ratio = report["ratio_now_over_base"]
     print(f"TD3 update, {report['env']}: base {report['ms_per_update']['base']:.2f} ms, now {report['ms_per_update']['now']:.2f} ms; "
           f"now/base {ratio['median']:.3f} [{ratio['q1']:.3f}, {ratio['q3']:.3f}] over {report['rounds']} rounds")
