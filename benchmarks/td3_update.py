@@ -98,14 +98,9 @@ def run(capacity: int = 1_000_000, repeats: int = 7, calls: int = 50, env_id: st
         fill(buffer, capacity, obs_dim, act_dim, name=name)
     spec = Bounded(-torch.ones(act_dim), torch.ones(act_dim), shape=(act_dim,))
 
-    def torchrl(**kwargs):
+    def torchrl(td3_class=TD3, **kwargs):
         torch.manual_seed(0)
-        td3 = TD3(make_actor(obs_dim, spec), make_critic(obs_dim, act_dim), spec, **kwargs)
-        return lambda: td3.update(buffer.sample())
-
-    def engine(**kwargs):
-        torch.manual_seed(0)
-        td3 = EngineTD3(make_actor(obs_dim, spec), make_critic(obs_dim, act_dim), spec, **kwargs)
+        td3 = td3_class(make_actor(obs_dim, spec), make_critic(obs_dim, act_dim), spec, **kwargs)
         return lambda: td3.update(buffer.sample())
 
     def plain(**kwargs):
@@ -131,7 +126,7 @@ def run(capacity: int = 1_000_000, repeats: int = 7, calls: int = 50, env_id: st
         "torchrl_stock": threads(1, torchrl()),
         "torchrl_fast": threads(1, torchrl(**FAST_TD3)),
         "torchrl_fast_2threads": threads(2, torchrl(**FAST_TD3)),
-        "torchrl_fast_engine_2threads": threads(2, engine(**FAST_TD3)),
+        "torchrl_fast_engine_2threads": threads(2, torchrl(EngineTD3, **FAST_TD3)),
     }
     timings = interleaved(methods, calls=calls, repeats=repeats, warmup=10)
     base = timings["plain"]["s_per_call"]
