@@ -16,7 +16,7 @@ from torchrl_esrl.collectors.es_collector import ESCollector
 from torchrl_esrl.modules.networks import flat_parameters, make_actor, make_critic
 from torchrl_esrl.algorithm.td3_phase import td3_phase
 from torchrl_esrl.collectors.td3_collector import GymTD3Collector, finished_episode_returns, make_td3_collector
-from torchrl_esrl.objectives.td3 import TD3, ForeachSoftUpdate, ManualGradTD3Loss
+from torchrl_esrl.objectives.td3 import TD3, ForeachSoftUpdate, ManualGradTD3Loss, zero_grads
 
 FAST = {"loss_class": ManualGradTD3Loss, "target_update_class": ForeachSoftUpdate, "optimizer_impl": "fused"}  # make_td3's fast pieces
 from torchrl_esrl.data.threshold import Threshold
@@ -703,3 +703,23 @@ def test_a_subclass_overriding_what_the_fast_loss_skips_gets_td3loss():
         if cls is SummedReduction:
             assert loss.refusal() == "SummedReduction overrides _reduce_loss"
     assert values[0] == pytest.approx(values[1], rel=1e-6) and values[0] == pytest.approx(64 * values[2], rel=1e-5)
+
+
+def test_zero_grads_is_zero_grad_set_to_none():
+    """zero_grads leaves every .grad None, as Optimizer.zero_grad(set_to_none=True); an optimizer
+    class with its own zero_grad gets that one called."""
+    net = torch.nn.Linear(3, 2)
+    optimizer = torch.optim.Adam(net.parameters(), fused=True)
+    net(torch.randn(4, 3)).sum().backward()
+    assert all(p.grad is not None for p in net.parameters())
+    zero_grads(optimizer)
+    assert all(p.grad is None for p in net.parameters())
+
+    class Zeroing(torch.optim.Adam):
+        def zero_grad(self, set_to_none=True):
+            super().zero_grad(set_to_none=False)
+
+    optimizer = Zeroing(net.parameters())
+    net(torch.randn(4, 3)).sum().backward()
+    zero_grads(optimizer)
+    assert all(p.grad is not None and not p.grad.any() for p in net.parameters())

@@ -166,6 +166,56 @@ def test_td3_loss_helpers(td3_loss):
     assert torch.allclose(torchrl_private.reduce_loss(td3_loss, value, data, None), value.mean())  # reduction "mean"
 
 
+@pytest.mark.parametrize("use_weights", [True, False, "auto"])
+def test_reweights_or_masks_and_has_entry_say_what_torchrl_would_find(td3_loss, use_weights):
+    """reweights_or_masks is TorchRL's own test (``_maybe_get_priority_weight`` or a loss-mask key in
+    the nested keys) for batches with and without each entry, a nested priority key included;
+    has_entry is ``key in keys(True)``."""
+    import copy
+
+    loss = copy.deepcopy(td3_loss)
+    loss.use_prioritized_weights = use_weights
+    extras = [None, ("priority_weight",), ("collector", "mask"), ("shifted_valid",), ("collector", "other"), ("p", "w")]
+    for priority_key in ("priority_weight", ("p", "w")):
+        loss.set_keys(priority_weight=priority_key)
+        for extra in extras:
+            data = batch()
+            if extra is not None:
+                data.set(extra, torch.ones(8))
+            keys = data.keys(True)
+            try:
+                expected = loss._maybe_get_priority_weight(data) is not None or any(k in keys for k in loss._loss_mask_keys())
+            except TypeError:  # TorchRL's own lookup refuses a nested priority key: so does reweights_or_masks
+                with pytest.raises(TypeError):
+                    torchrl_private.reweights_or_masks(loss, data)
+            else:
+                assert torchrl_private.reweights_or_masks(loss, data) == expected, (priority_key, extra)
+            for key in ("observation", ("observation",), ("next", "reward"), ("next", "x"), ("observation", "x"), "x", ("x", "y"), *filter(None, extras)):
+                assert torchrl_private.has_entry(data, key) == (key in keys), key
+
+
+def test_function_apply_is_function_apply():
+    """function_apply gives what Function.apply gives: outputs, the node class, the gradients."""
+
+    class Scale(torch.autograd.Function):
+        @staticmethod
+        def forward(ctx, factor, x, w):
+            ctx.save_for_backward(x, w)
+            ctx.factor = factor
+            return (x * w).sum() * factor
+
+        @staticmethod
+        def backward(ctx, grad):
+            x, w = ctx.saved_tensors
+            return None, grad * w * ctx.factor, grad * x * ctx.factor
+
+    x, w = torch.randn(4, requires_grad=True), torch.randn(4, requires_grad=True)
+    outputs = [Scale.apply(3.0, x, w), torchrl_private.function_apply(Scale, 3.0, x, w)]
+    assert type(outputs[0].grad_fn) is type(outputs[1].grad_fn) is torchrl_private.backward_node_class(Scale)
+    grads = [torch.autograd.grad(out, (x, w)) for out in outputs]
+    assert torch.equal(outputs[0], outputs[1]) and all(torch.equal(a, b) for a, b in zip(*grads))
+
+
 def test_gradient_hooks_and_backward_node_class_see_what_torch_holds():
     """gradient_hooks sees a tensor hook and a post-accumulate-grad hook; backward_node_class is the
     class of the nodes a Function makes; without_loss_contexts unwraps TorchRL's loss-method wrapper."""

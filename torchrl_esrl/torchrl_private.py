@@ -171,10 +171,25 @@ def reweights_or_masks(loss, tensordict) -> bool:
     keys, e.g. ``("collector", "mask")``) this batch. The hand-written TD3 gradients compute the
     plain batch mean only and hand such batches to TorchRL's own code; the public API has no
     getter for either (``LossModule._maybe_get_priority_weight``, ``LossModule._loss_mask_keys``)."""
-    if loss._maybe_get_priority_weight(tensordict) is not None:
-        return True
-    keys = tensordict.keys(True)
-    return any(key in keys for key in loss._loss_mask_keys())
+    top = tensordict.keys()
+    if loss.use_prioritized_weights in (True, "auto"):
+        key = loss.tensor_keys.priority_weight
+        if key in top if isinstance(key, str) else loss._maybe_get_priority_weight(tensordict) is not None:
+            return True  # _maybe_get_priority_weight's weights (its own call, and its error, for a nested key)
+    return any(has_entry(tensordict, key, top) for key in loss._loss_mask_keys())
+
+
+def has_entry(tensordict, key, top=None) -> bool:
+    """``key in tensordict.keys(True)`` for a nested key (a string or a tuple), the first level
+    looked up alone first (``top``: ``tensordict.keys()``, where the caller has it): a batch lacks
+    most keys a loss looks for, and the nested view walks the whole tensordict to say so."""
+    if top is None:
+        top = tensordict.keys()
+    if isinstance(key, str):
+        return key in top
+    if len(key) == 1 or key[0] not in top:
+        return len(key) == 1 and key[0] in top
+    return key in tensordict.keys(True)
 
 
 def reduce_loss(loss, value, tensordict, weights):
@@ -300,6 +315,19 @@ def gradient_hooks(tensor: torch.Tensor) -> bool:
     the direct backward of the hand-written TD3 losses then leaves it to the autograd engine. torch
     keeps them in private attributes with no public getter."""
     return bool(tensor._backward_hooks) or bool(getattr(tensor, "_post_accumulate_grad_hooks", None))
+
+
+def function_apply(function: type, *args):
+    """``function.apply(*args)`` for a ``torch.autograd.Function`` without ``setup_context``: outside
+    functorch transforms, ``Function.apply`` unwraps dead functorch wrappers, then calls the C
+    ``_FunctionBase.apply``; this does the same without the Python frame between (``super().apply`` of
+    a class method has no public name). Inside a transform it is ``function.apply``."""
+    if torch._C._are_functorch_transforms_active():
+        return function.apply(*args)
+    return _C_FUNCTION_APPLY.__get__(None, function)(*(torch._C._functorch.unwrap_if_dead(a) if isinstance(a, torch.Tensor) else a for a in args))
+
+
+_C_FUNCTION_APPLY = torch._C._FunctionBase.__dict__["apply"]
 
 
 def backward_node_class(function: type) -> type:

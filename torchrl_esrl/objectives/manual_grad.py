@@ -18,8 +18,9 @@ from torchrl.objectives.value import TD0Estimator
 
 from torchrl_esrl.modules.networks import describe_actor, describe_mlp, squash
 from torchrl_esrl.torchrl_private import (
-    backward_node_class, detached_qvalue_params, gradient_hooks, loss_priority_weight, module_hook_dicts, module_hooks,
-    overridden_td3_loss_internals, reduce_loss, reweights_or_masks, td3_loss_default_keys, without_loss_contexts,
+    backward_node_class, detached_qvalue_params, function_apply, gradient_hooks, has_entry, loss_priority_weight,
+    module_hook_dicts, module_hooks, overridden_td3_loss_internals, reduce_loss, reweights_or_masks, td3_loss_default_keys,
+    without_loss_contexts,
 )
 
 
@@ -129,7 +130,7 @@ class ManualGradTD3Loss(TD3Loss):
             terminated = tensordict.get(("next", "terminated"), default=tensordict.get(("next", "done")))
             target_value = (reward + self.value_estimator.gamma * (~terminated).int() * next_value).squeeze(-1)
         x = torch.cat([observation, action], -1)
-        loss, current_qvalue, td_error = _CriticLoss.apply(layout.critic_activations, x, target_value, *layout.critic_parameters)
+        loss, current_qvalue, td_error = function_apply(_CriticLoss, layout.critic_activations, x, target_value, *layout.critic_parameters)
         return loss, {"td_error": td_error, "next_state_value": next_value.squeeze(-1), "pred_value": current_qvalue, "target_value": target_value}
 
     def actor_loss(self, tensordict) -> tuple[torch.Tensor, dict]:
@@ -141,7 +142,7 @@ class ManualGradTD3Loss(TD3Loss):
         if self._needs_gradient(observation):
             return super().actor_loss(tensordict)
         layout = self._manual_layout()
-        loss, state_action_value = _ActorLoss.apply(layout.actor_spec, layout.actor_constants, observation, *layout.actor_parameters)
+        loss, state_action_value = function_apply(_ActorLoss, layout.actor_spec, layout.actor_constants, observation, *layout.actor_parameters)
         return loss, {"state_action_value_actor": state_action_value}
 
     def _refusal(self, tensordict) -> str | None:
@@ -173,7 +174,7 @@ class ManualGradTD3Loss(TD3Loss):
             return "prioritised weights or loss mask"
         if tensordict.batch_dims != 1:
             return f"batch of {tensordict.batch_dims} dims"
-        if tensordict.get(keys.steps_to_next_obs, None) is not None:
+        if has_entry(tensordict, keys.steps_to_next_obs):
             return "steps_to_next_obs"
         return None
 
@@ -331,7 +332,7 @@ def _noting_hooks(function: type[torch.autograd.Function], outputs: int) -> type
     return node_class
 
 
-_LOSS_NODES = (_noting_hooks(_CriticLoss, 3), _noting_hooks(_ActorLoss, 2))
+_LOSS_NODES = {_noting_hooks(_CriticLoss, 3): _CriticLoss, _noting_hooks(_ActorLoss, 2): _ActorLoss}  # node class: its Function
 
 
 def backward(loss: torch.Tensor) -> None:
@@ -343,11 +344,14 @@ def backward(loss: torch.Tensor) -> None:
     term, a ``.grad`` already there, a hook on the loss, its node or a parameter, a parameter that is
     not a leaf, anomaly detection."""
     node = loss.grad_fn
-    leaves = _direct_leaves(loss, node) if type(node) in _LOSS_NODES else None
+    function = _LOSS_NODES.get(type(node))
+    leaves = _direct_leaves(loss, node) if function is not None else None
     if leaves is None:
         loss.backward()
         return
-    grads = node.apply(torch.ones_like(loss), *(None,) * (node.outputs - 1))  # once_differentiable: without grad mode, as in the engine
+    # The Function's backward with the node as its context, as the engine calls it (once_differentiable:
+    # without grad mode); the gradients have their parameters' shapes and dtypes (the engine's checks).
+    grads = function.backward(node, torch.ones_like(loss), *(None,) * (node.outputs - 1))
     for leaf, grad in zip(leaves, grads[len(grads) - len(leaves) :]):  # the tensor inputs come last
         if leaf is not None and grad is not None:
             leaf.grad = grad if grad.stride() == leaf.stride() else torch.empty_like(leaf).copy_(grad)
