@@ -12,7 +12,8 @@
 # still has a record. <run_dir>.pieces gets one line per piece: that record and how it ended (exit
 # status, or "killed" for a piece that left only its .alive file). Once the run has written
 # summary.json, its records go to $RESULTS: metrics.csv, summary.json, config.yaml, pieces.txt,
-# checkpoints.txt (the size in bytes of each checkpoint kept at the end); and
+# checkpoints.txt (the size in bytes of each checkpoint kept at the end), pauses.txt (when
+# scripts/pause_runs.sh held the run, if it did); and
 # the report of the one run goes to $REPORT (recipes/report.py: curves, buffer sizes, ES mean vs
 # TD3 actor). A finished run is never rewritten: calling again only copies the records.
 #
@@ -61,5 +62,6 @@ mkdir -p "$RESULTS" "$REPORT"
 cp "$DIR/metrics.csv" "$DIR/summary.json" "$RESULTS/"
 cp "$DIR/.hydra/config.yaml" "$RESULTS/config.yaml"
 cp "$DIR.pieces" "$RESULTS/pieces.txt"
+[ -f "$DIR.pauses" ] && cp "$DIR.pauses" "$RESULTS/pauses.txt"  # scripts/pause_runs.sh: the run held while a benchmark ran
 du -sb "$DIR"/checkpoints/checkpoint-* | sed "s#$DIR/##" > "$RESULTS/checkpoints.txt"  # bytes of each checkpoint kept at the end
 "$PYTHON" recipes/report.py "$RESULTS" --out "$REPORT" > /dev/null

@@ -56,3 +56,28 @@ def test_paper_run_records_each_piece_a_killed_one_too_and_never_reruns_a_finish
     second = call()
     assert second.returncode == 0
     assert (results / "pieces.txt").read_text().splitlines() == pieces  # finished: no new piece
+
+
+def test_pause_runs_holds_a_run_and_lets_it_finish_with_its_pauses_recorded(tmp_path):
+    """pause_runs.sh stops the named run's process (state T) without ending it; resumed, the run
+    finishes, and paper_run.sh copies its pause record into the records."""
+    import time
+
+    run_dir, results = tmp_path / "run", tmp_path / "records"
+    env = {**os.environ, "RESULTS": str(results), "REPORT": str(tmp_path / "report"), "PYTHON": sys.executable}
+    runner = subprocess.Popen(["bash", str(ROOT / "scripts" / "paper_run.sh"), str(run_dir), "experiment=tiny", "td3.num_threads=1"],
+                              cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
+    deadline = time.time() + 120
+    while not (run_dir / ".hydra").exists() and time.time() < deadline:  # the recipe has started
+        time.sleep(0.2)
+    paused = _script("pause_runs.sh", "pause", str(run_dir))
+    assert paused.returncode == 0 and paused.stdout.startswith("pause "), paused.stdout + paused.stderr
+    pid = int(paused.stdout.split()[1])
+    time.sleep(1)
+    assert open(f"/proc/{pid}/stat").read().split(")")[1].split()[0] == "T"  # stopped, not gone
+    resumed = _script("pause_runs.sh", "resume", str(run_dir))
+    assert resumed.returncode == 0 and resumed.stdout.split()[:2] == ["resume", str(pid)]
+    assert runner.wait(timeout=600) == 0, runner.stdout.read()
+    lines = (results / "pauses.txt").read_text().splitlines()
+    assert [line.split()[0] for line in lines] == ["pause", "resume"]
+    assert _script("pause_runs.sh", "halt").returncode == 2
