@@ -320,23 +320,6 @@ def test_td3_collector_resumes_mid_episode(fast):
         assert torch.equal(got.get(key), expected.get(key)), key
 
 
-def test_numpy_tanh_of_the_manual_grad_loss_matches_torch_tanh():
-    """The hand-written forwards' hidden tanh: numpy's kernel in place without autograd (within one
-    float32 rounding step of torch.tanh), torch.tanh itself where a gradient is recorded."""
-    from torchrl_esrl.objectives.manual_grad import _tanh
-
-    x = (3 * torch.randn(256, 256, generator=torch.Generator().manual_seed(0))).requires_grad_()
-    y_torch = torch.tanh(x)
-    y = _tanh(x)
-    assert y.grad_fn is not None and y.data_ptr() != x.data_ptr()
-    assert torch.equal(y, y_torch)
-    with torch.no_grad():
-        z = x.detach().clone()
-        assert _tanh(z) is z
-        torch.testing.assert_close(z, y_torch.detach(), rtol=0, atol=2e-7)
-        assert not torch.equal(z, x)
-
-
 def test_manual_grad_loss_follows_a_loaded_state_dict():
     """The hand-written losses look their tensors up once; loading a checkpoint (TorchRL copies into the
     parameters in place) must still give the loaded learner's losses."""

@@ -7,7 +7,6 @@ loss. :class:`torchrl_esrl.objectives.td3.TD3` trains either, or stock ``TD3Loss
 """
 from __future__ import annotations
 
-import numpy as np
 import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModule
@@ -17,12 +16,12 @@ from torchrl.objectives import TD3Loss
 from torchrl.objectives.value import TD0Estimator
 
 from torchrl_esrl.modules.networks import describe_actor, describe_mlp, squash
+from torchrl_esrl.objectives import mlp_chain_rule as chain
 from torchrl_esrl.torchrl_private import (
     backward_node_class, detached_qvalue_params, function_apply, gradient_hooks, has_entry, loss_priority_weight,
     module_hook_dicts, module_hooks, overridden_td3_loss_internals, reduce_loss, reweights_or_masks, td3_loss_default_keys,
     without_loss_contexts,
 )
-
 
 
 class TD3LossQ1Actor(TD3Loss):
@@ -46,32 +45,6 @@ class TD3LossQ1Actor(TD3Loss):
         state_action_value = td.get(self.tensor_keys.state_action_value).squeeze(-1)
         loss_actor = reduce_loss(self, -state_action_value, tensordict, weights)
         return loss_actor, {"state_action_value_actor": state_action_value.detach()}
-
-
-def _tanh(x: torch.Tensor) -> torch.Tensor:
-    """Hidden ``tanh`` of the hand-written forwards: numpy's kernel, in place on ``x`` (a fresh layer
-    output) where no gradient is recorded; ``torch.tanh`` otherwise.
-
-    numpy's kernel because torch 2.13's CPU ``tanh`` measured slower than ``numpy.tanh`` on the
-    update's 256x256 float32 activations (docs/performance.md); the two agree to one float32
-    rounding step (tests/test_td3.py).
-    """
-    if x.device.type != "cpu" or x.dtype not in (torch.float32, torch.float64) or (torch.is_grad_enabled() and x.requires_grad):
-        return torch.tanh(x)
-    array = x.numpy()
-    np.tanh(array, out=array)
-    return x
-
-
-def _relu(x: torch.Tensor) -> torch.Tensor:
-    """Hidden ReLU of the hand-written forwards: in place on ``x`` (a fresh layer output) where no
-    gradient is recorded, ``torch.relu`` otherwise (the same values)."""
-    return torch.relu(x) if torch.is_grad_enabled() and x.requires_grad else x.relu_()
-
-
-_ACTIVATIONS = {"tanh": _tanh, "relu": _relu, None: None}  # the kernels of FAST_ACTIVATIONS (None: no activation)
-# d activation: (gradient w.r.t. the output, the output) -> gradient w.r.t. the input, as autograd computes it
-_ACTIVATION_BACKWARD = {_tanh: torch.ops.aten.tanh_backward, _relu: lambda grad, out: torch.ops.aten.threshold_backward(grad, out, 0)}
 
 
 class ManualGradTD3Loss(TD3Loss):
@@ -124,9 +97,9 @@ class ManualGradTD3Loss(TD3Loss):
         noise = (torch.randn_like(action) * self.policy_noise).clamp(-self.noise_clip, self.noise_clip)  # first, as TD3Loss
         with torch.no_grad():
             next_observation = tensordict.get(("next", "observation"))
-            x = squash(self.actor_network.module[1], _forward(layout.target_actor, next_observation), *layout.target_bounds)
+            x = squash(self.actor_network.module[1], chain.forward(layout.target_actor, next_observation), *layout.target_bounds)
             next_action = (x + noise).clamp(self.min_action, self.max_action)
-            next_value = _stacked(layout.target_critics, next_observation, next_action).min(0)[0].unsqueeze(-1)
+            next_value = chain.stacked(layout.target_critics, next_observation, next_action).min(0)[0].unsqueeze(-1)
             terminated = tensordict.get(("next", "terminated"), default=tensordict.get(("next", "done")))
             target_value = (reward + self.value_estimator.gamma * (~terminated).int() * next_value).squeeze(-1)
         x = torch.cat([observation, action], -1)
@@ -226,7 +199,7 @@ without_loss_contexts(ManualGradTD3Loss, "value_loss", "actor_loss")
 
 def _named_kernels(mlp) -> list[tuple[str, object]]:
     """``[(Linear's name, kernel of the activation after it or None), ...]`` of an MLP description."""
-    return [(layer.name, _ACTIVATIONS[layer.activation]) for layer in mlp.layers]
+    return [(layer.name, chain.ACTIVATIONS[layer.activation]) for layer in mlp.layers]
 
 
 class _CriticLoss(torch.autograd.Function):
@@ -241,8 +214,8 @@ class _CriticLoss(torch.autograd.Function):
     @staticmethod
     def forward(ctx, activations, x, target, *parameters):
         inputs = []
-        layers = _layers(parameters, activations)
-        current_qvalue = _forward(layers, x.expand(parameters[0].shape[0], *x.shape), inputs).squeeze(-1)
+        layers = chain.layers(parameters, activations)
+        current_qvalue = chain.forward(layers, x.expand(parameters[0].shape[0], *x.shape), inputs).squeeze(-1)
         error = current_qvalue - target
         td_error = error.pow(2)
         loss = td_error.sum(0).mean()
@@ -261,7 +234,7 @@ class _CriticLoss(torch.autograd.Function):
         if grad_loss is None:
             return (None,) * (3 + count)
         grad = (error * (2.0 / error.shape[-1])).unsqueeze(-1) * grad_loss  # dL/dQ, [2, B, 1]
-        grads, _ = _backward(_layers(saved[:count], ctx.activations), saved[count:], grad, ctx.needs_input_grad[3:])
+        grads, _ = chain.backward(chain.layers(saved[:count], ctx.activations), saved[count:], grad, ctx.needs_input_grad[3:])
         return None, None, None, *grads
 
 
@@ -280,11 +253,11 @@ class _ActorLoss(torch.autograd.Function):
         activations, clamp, non_trivial = spec
         low, high, critic1 = constants
         actor_inputs, critic_inputs = [], []
-        squashed = _forward(_layers(parameters, activations), observation, actor_inputs).tanh()  # squash(), step by step: its backward needs each step
+        squashed = chain.forward(chain.layers(parameters, activations), observation, actor_inputs).tanh()  # squash(), step by step: its backward needs each step
         eps = torch.finfo(squashed.dtype).resolution
         clamped = squashed.clamp(-1 + eps, 1 - eps) if clamp else squashed
         action = low + (high - low) * (clamped + 1) / 2 if non_trivial else clamped
-        state_action_value = _forward(critic1, torch.cat([observation, action], -1), critic_inputs).squeeze(-1)
+        state_action_value = chain.forward(critic1, torch.cat([observation, action], -1), critic_inputs).squeeze(-1)
         loss = -state_action_value.mean()
         ctx.save_for_backward(squashed, *parameters, *actor_inputs, *critic_inputs)  # autograd frees them after the backward
         ctx.spec, ctx.constants, ctx.observation_dim = spec, constants, observation.shape[-1]
@@ -305,14 +278,14 @@ class _ActorLoss(torch.autograd.Function):
             return (None,) * (3 + count)
         batch = squashed.shape[0]
         grad = torch.full((batch, 1), -1.0 / batch, dtype=squashed.dtype, device=squashed.device) * grad_loss  # dL/dQ_1
-        _, grad = _backward(critic1, critic_inputs, grad, (False,) * (2 * len(critic1)), input_grad=True)
+        _, grad = chain.backward(critic1, critic_inputs, grad, (False,) * (2 * len(critic1)), input_grad=True)
         grad = grad[:, ctx.observation_dim :]  # dL/d action
         if non_trivial:
             grad = grad / 2 * (high - low)
         if clamp:
             eps = torch.finfo(squashed.dtype).resolution
             grad = torch.where((squashed >= -1 + eps) & (squashed <= 1 - eps), grad, 0.0)
-        grads, _ = _backward(_layers(parameters, activations), actor_inputs, torch.ops.aten.tanh_backward(grad, squashed), ctx.needs_input_grad[3:])
+        grads, _ = chain.backward(chain.layers(parameters, activations), actor_inputs, torch.ops.aten.tanh_backward(grad, squashed), ctx.needs_input_grad[3:])
         return None, None, None, *grads
 
 
@@ -382,53 +355,6 @@ def _direct_leaves(loss: torch.Tensor, node) -> list | None:
     return leaves
 
 
-def _layers(parameters, activations) -> list:
-    """``(weight, bias, activation)`` per layer from ``(w_1, b_1, w_2, b_2, ...)``."""
-    return [(parameters[2 * index], parameters[2 * index + 1], act) for index, act in enumerate(activations)]
-
-
-def _stacked(layers, observation, action) -> torch.Tensor:
-    """``[2, B]`` values of the stacked critics: one ``baddbmm`` per layer."""
-    x = torch.cat([observation, action], -1)
-    return _forward(layers, x.expand(layers[0][0].shape[0], *x.shape)).squeeze(-1)
-
-
-def _forward(layers, x: torch.Tensor, inputs: list | None = None) -> torch.Tensor:
-    """``x`` through ``(weight, bias, activation)`` layers: ``addmm`` for a network's ``[out, in]``
-    weights, ``baddbmm`` for the twin critics' stacked ``[2, out, in]``. ``inputs`` (if given)
-    receives each layer's input, which :func:`_backward` needs."""
-    for weight, bias, act in layers:
-        if inputs is not None:
-            inputs.append(x)
-        if weight.dim() == 2:
-            x = torch.addmm(bias, x, weight.t())
-        else:
-            x = torch.baddbmm(bias.unsqueeze(1), x, weight.transpose(1, 2))
-        if act is not None:
-            x = act(x)
-    return x
-
-
-def _backward(layers, inputs: list, grad: torch.Tensor, needs, input_grad: bool = False) -> tuple[list, torch.Tensor | None]:
-    """The chain rule back through :func:`_forward`'s ``layers`` from ``grad`` = dL/d(output): per layer
-    ``dW = g^T x`` and ``db = sum over the batch of g`` where ``needs`` (one flag per weight and bias)
-    asks for them, then ``g <- (g W) * act'(x)`` while a layer below (or, with ``input_grad``, the
-    input) needs it. Returns (the parameters' gradients, None where not asked; dL/d input or None)."""
-    grads = [None] * len(needs)
-    lowest = 0 if input_grad else next((index // 2 for index, need in enumerate(needs) if need), len(layers))
-    for index in range(len(layers) - 1, lowest - 1, -1):
-        weight = layers[index][0]
-        if needs[2 * index]:
-            grads[2 * index] = torch.matmul(grad.transpose(-2, -1), inputs[index])
-        if needs[2 * index + 1]:
-            grads[2 * index + 1] = grad.sum(-2)
-        if index > lowest or input_grad:
-            grad = torch.matmul(grad, weight)
-            if index:
-                grad = _ACTIVATION_BACKWARD[layers[index - 1][2]](grad, inputs[index])
-    return grads, grad if input_grad else None
-
-
 class _ManualGradLayout:
     """The tensors :class:`ManualGradTD3Loss` computes with, looked up once instead of ~30 TensorDict
     lookups per update: ``(w_1, b_1, ...)`` and activations of the actor and the stacked critics,
@@ -442,15 +368,15 @@ class _ManualGradLayout:
 
         actor_prefix = ("module", "0", "module")
         self.actor_parameters = parameters(loss.actor_network_params, actor_prefix, actor_mlp)
-        self.target_actor = _layers(parameters(loss.target_actor_network_params, actor_prefix, actor_mlp), [act for _, act in actor_mlp])
+        self.target_actor = chain.layers(parameters(loss.target_actor_network_params, actor_prefix, actor_mlp), [act for _, act in actor_mlp])
         self.bounds, self.target_bounds = (
             (params.get(("module", "1", "action_low")), params.get(("module", "1", "action_high")))
             for params in (loss.actor_network_params, loss.target_actor_network_params)
         )
         self.critic_activations = tuple(act for _, act in critic_mlp)
         self.critic_parameters = parameters(loss.qvalue_network_params, ("module",), critic_mlp)
-        self.target_critics = _layers(parameters(loss.target_qvalue_network_params, ("module",), critic_mlp), self.critic_activations)
-        critic1 = _layers(tuple(p.detach()[0] for p in self.critic_parameters), self.critic_activations)
+        self.target_critics = chain.layers(parameters(loss.target_qvalue_network_params, ("module",), critic_mlp), self.critic_activations)
+        critic1 = chain.layers(tuple(p.detach()[0] for p in self.critic_parameters), self.critic_activations)
         self.actor_constants = (*self.bounds, critic1)
         tanh_module = loss.actor_network.module[1]
         self.actor_spec = (tuple(act for _, act in actor_mlp), bool(tanh_module.clamp), bool(tanh_module.non_trivial))

@@ -1,0 +1,45 @@
+"""benchmarks.full_scale: a real run continued from a checkpoint at an iteration boundary, one iteration
+timed with the working tree's recipe and a commit's, the run itself left as it was."""
+import hashlib
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from benchmarks import full_scale
+
+ROOT = Path(__file__).resolve().parents[1]
+
+pytestmark = pytest.mark.e2e
+
+
+def _digest(folder: Path) -> dict:
+    return {str(p.relative_to(folder)): hashlib.sha256(p.read_bytes()).hexdigest() for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+def test_an_iteration_continued_from_a_real_checkpoint_is_timed_and_is_the_runs_own(tmp_path):
+    run_dir = tmp_path / "run"
+    command = [sys.executable, "recipes/es_td3.py", "experiment=tiny", "iterations=3", "checkpoint.keep_last=10", "td3.num_threads=1", f"hydra.run.dir={run_dir}"]
+    assert subprocess.run(command, cwd=ROOT, capture_output=True, timeout=900).returncode == 0
+    assert sorted(full_scale.boundary_checkpoints(run_dir)) == [1, 2, 3]
+    before = _digest(run_dir)
+    worktrees = subprocess.run(["git", "worktree", "list"], cwd=ROOT, capture_output=True, text=True).stdout
+    out = tmp_path / "full_scale.json"
+    full_scale.main([str(run_dir), "--base", "HEAD", "--rounds", "2", "--iteration", "1", "--out", str(out)])
+    report = json.loads(out.read_text())
+    assert _digest(run_dir) == before  # the run was only read
+    assert report["recipe"] == "recipes/es_td3.py" and report["from_iteration"] == 1
+    with (run_dir / "metrics.csv").open() as f:
+        original = [line.split(",") for line in f.read().splitlines()]
+    column = original[0].index("eval_return")
+    for name in ("now", "base"):
+        assert len(report["times"][name]) == 2
+        for timed in report["times"][name]:
+            assert timed["iteration"] == 1 and 0 < timed["iteration_s"] < timed["process_s"]
+            assert timed["eval_return"] == float(original[2][column])  # the second iteration, as the run itself had it
+    assert len(report["ratio_now_over_base"]["per_round"]) == 2
+    with pytest.raises(SystemExit, match="--iteration: 3 has no checkpoint"):  # the last iteration leaves none to run
+        full_scale.run(run_dir, iteration=3)
+    assert subprocess.run(["git", "worktree", "list"], cwd=ROOT, capture_output=True, text=True).stdout == worktrees  # the base's removed
