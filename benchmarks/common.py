@@ -69,12 +69,32 @@ def machine() -> dict:
     return {
         "cpus": os.cpu_count(),
         "processor": platform.processor() or platform.machine(),
+        "cpu": cpu_model(),
         "torch": torch.__version__,
         "torch_threads": torch.get_num_threads(),
         "OMP_WAIT_POLICY": os.environ.get("OMP_WAIT_POLICY"),
         "cuda": torch.cuda.is_available(),
         "load_average": os.getloadavg(),
     }
+
+
+# Instruction sets that decide the speed of the matrix products (bfloat16 on AMX needs amx_bf16).
+CPU_FLAGS = ("avx2", "avx512f", "avx512_bf16", "amx_bf16", "amx_tile")
+
+
+def cpu_model() -> dict:
+    """The processor's model name, family/model numbers and :data:`CPU_FLAGS`, from /proc/cpuinfo
+    (empty elsewhere): a virtual machine of the same size may run on another processor from one
+    session to the next, and a figure holds for the processor it was measured on."""
+    try:
+        text = open("/proc/cpuinfo").read()
+    except OSError:
+        return {}
+    first = dict(line.split(":", 1) for line in text.split("\n\n")[0].splitlines() if ":" in line)
+    first = {key.strip(): value.strip() for key, value in first.items()}
+    flags = set(first.get("flags", "").split())
+    return {"model_name": first.get("model name"), "family": first.get("cpu family"), "model": first.get("model"),
+            "flags": [flag for flag in CPU_FLAGS if flag in flags]}
 
 
 def save_report(report: dict, out: str | None) -> dict:
