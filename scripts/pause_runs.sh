@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Pause or resume every recipe run on this machine that scripts/paper_run.sh started, so that a
+# Pause or resume recipe runs started with hydra.run.dir= (as scripts/paper_run.sh starts them), so that a
 # benchmark gets the machine alone without the runs losing work: SIGSTOP holds each run (and its
 # workers) where it is, in memory; SIGCONT lets it go on. Each run directory gets one line per call
 # in <run_dir>.pauses ("pause <UTC time>" / "resume <UTC time>"), which paper_run.sh copies into the
