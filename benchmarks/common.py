@@ -19,7 +19,7 @@ import torch
 from tensordict import TensorDict
 
 # Observation / action sizes of the paper's tasks (gymnasium v5).
-SHAPES = {"HalfCheetah-v5": (17, 6), "Ant-v5": (105, 8), "Walker2d-v5": (17, 6), "Hopper-v5": (11, 3)}
+SHAPES = {"HalfCheetah-v5": (17, 6), "Ant-v5": (105, 8), "Walker2d-v5": (17, 6), "Hopper-v5": (11, 3), "Swimmer-v5": (8, 2)}
 
 
 def transitions(n: int, obs_dim: int, act_dim: int, generator: torch.Generator | None = None) -> TensorDict:

@@ -156,10 +156,10 @@ def test_renamed_and_added_keys_come_from_the_schema_and_old_configs_resume_in_t
     from torchrl_esrl.run.config import ADDED, RENAMED
     from torchrl_esrl.run.resume import in_todays_names
 
-    assert set(RENAMED) == {"td3.fast", "mode"} and ADDED == {"env.kwargs": {}, "env.wrappers": [], "env.transforms": []}
+    assert set(RENAMED) == {"td3.fast", "mode"} and ADDED == {"env.kwargs": {}, "env.wrappers": [], "env.transforms": [], "td3.precision": "fp32"}
     old = {"implementation": "fast", "mode": "async", "td3": {"fast": False, "lr": 0.1}, "es": {"sigma": 0.1}, "env": {"id": "Walker2d-v5"}}
     today = in_todays_names(old)
-    assert today == {"implementation": "reference", "mode": None, "td3": {"fast": None, "lr": 0.1}, "es": {"sigma": 0.1, "schedule": "async"},
+    assert today == {"implementation": "reference", "mode": None, "td3": {"fast": None, "lr": 0.1, "precision": "fp32"}, "es": {"sigma": 0.1, "schedule": "async"},
                      "env": {"id": "Walker2d-v5", "kwargs": {}, "wrappers": [], "transforms": []}}
     assert old["td3"]["fast"] is False and "kwargs" not in old["env"]  # the saved config itself is left as it is
 

@@ -138,6 +138,7 @@ VALUE_ERRORS = [
     ("overwrite.mix=1.5", "overwrite.mix"),
     ("td3.random_frames=-1", "td3.random_frames"),
     ("td3.num_threads=0", "td3.num_threads"),
+    ("td3.precision=fp16", "td3.precision"),
     # Every key of the schema (torchrl_esrl/run/schema.py) with a bounded range or a fixed set of values.
     ("seed=-1", "seed"),
     ("experiment_name=''", "experiment_name"),

@@ -706,3 +706,69 @@ def test_zero_grads_is_zero_grad_set_to_none():
     net(torch.randn(4, 3)).sum().backward()
     zero_grads(optimizer)
     assert all(p.grad is not None and not p.grad.any() for p in net.parameters())
+
+
+# ------------------------------------------------- td3.precision=bf16: the losses under autocast to bfloat16
+def _relative(got, expected) -> float:
+    return ((got.double() - expected.double()).norm() / expected.double().norm()).item()
+
+
+@pytest.mark.parametrize("which", ["value", "actor"])
+def test_under_autocast_to_bfloat16_the_fast_losses_compute_td3losss_function_in_bfloat16(which):
+    """Inside ``torch.autocast(dtype=torch.bfloat16)`` the hand-written losses run (they do not hand
+    over) with bfloat16 products: their loss and gradients equal TD3Loss's under the same autocast to
+    bfloat16 rounding, differ from the float32 ones by more than float32 rounding, and the gradients
+    are float32 like the parameters."""
+    spec, actor, critic, batch = _critic_case(256, terminated_every=7)
+    results = {}
+    for cls, bf16 in ((TD3Loss, True), (ManualGradTD3Loss, True), (ManualGradTD3Loss, False)):
+        loss = _loss_with_moved_targets(cls, actor, critic, spec)
+        actor.zero_grad(set_to_none=True)
+        torch.manual_seed(3)
+        with torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
+            assert cls is TD3Loss or (loss.refusal(batch), loss.matmul_dtype()) == (None, torch.bfloat16 if bf16 else None)
+            value, _ = getattr(loss, f"{which}_loss")(batch)
+        assert cls is TD3Loss or type(value.grad_fn).__name__ == ("_CriticLossBackward" if which == "value" else "_ActorLossBackward")
+        value.backward()
+        parameters = list(loss.qvalue_network_params.values(True, True)) if which == "value" else list(actor.parameters())
+        assert value.dtype == torch.float32 and all(p.grad.dtype == torch.float32 for p in parameters)
+        results[cls, bf16] = (value.detach(), [p.grad.clone() for p in parameters])
+    (stock, stock_grads), (bf16, bf16_grads), (fp32, fp32_grads) = results.values()
+    assert abs(bf16 - stock) / abs(stock) < 1e-3
+    assert all(_relative(got, expected) < 0.1 for got, expected in zip(bf16_grads, stock_grads))
+    assert max(_relative(got, expected) for got, expected in zip(bf16_grads, fp32_grads)) > 1e-3  # bfloat16, not float32
+
+
+def test_autocast_to_float16_hands_the_losses_to_td3loss():
+    spec, actor, critic, batch = _critic_case(64, terminated_every=7)
+    loss = _loss_with_moved_targets(ManualGradTD3Loss, actor, critic, spec)
+    with torch.autocast("cpu", dtype=torch.float16):
+        assert loss.refusal(batch) == "autocast to float16"
+        assert type(loss.value_loss(batch)[0].grad_fn).__name__ != "_CriticLossBackward"
+
+
+@pytest.mark.parametrize("pieces", ["fast", "reference"])
+def test_bf16_updates_keep_float32_weights_adam_and_targets_and_follow_the_float32_run(pieces):
+    """``TD3(precision="bf16")``: after updates the parameters, their Adam moments and the targets are
+    float32; the losses follow the float32 run's to bfloat16 rounding, and the parameters moved
+    differently (the option reached the arithmetic). The fast pieces and the reference agree."""
+    chosen = FAST if pieces == "fast" else REFERENCE
+    bf16, bf16_outs = _td3_runs(chosen, precision="bf16")
+    fp32, fp32_outs = _td3_runs(chosen)
+    state = _state(bf16)
+    assert all(p.dtype == torch.float32 for p in state["parameters"])
+    assert all(v.dtype == torch.float32 for target in state["targets"] for v in target.values(True, True) if v.is_floating_point())
+    moments = [s for optimizer in (bf16.actor_optimizer, bf16.critic_optimizer) for s in optimizer.state.values()]
+    assert moments and all(s["exp_avg"].dtype == torch.float32 for s in moments)
+    for got, expected in zip(bf16_outs, fp32_outs):
+        assert got.keys() == expected.keys()
+        assert all(got[key] == pytest.approx(expected[key], rel=2e-2) for key in got)
+    moved = max((a - b).abs().max().item() for a, b in zip(state["parameters"], _state(fp32)["parameters"]))
+    assert moved > 1e-7
+    reference, reference_outs = _td3_runs(REFERENCE, precision="bf16")
+    assert all(got[key] == pytest.approx(expected[key], rel=2e-2) for got, expected in zip(bf16_outs, reference_outs) for key in got)
+
+
+def test_precision_is_fp32_or_bf16():
+    with pytest.raises(ValueError, match="precision must be fp32 or bf16"):
+        build("pendulum", precision="fp16")

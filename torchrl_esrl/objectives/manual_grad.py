@@ -78,7 +78,8 @@ class ManualGradTD3Loss(TD3Loss):
         ``TD0Estimator``, TorchRL's default tensor keys, target networks for actor and critics, an
         actor of biased Linear layers with tanh or ReLU between them followed by ``TanhModule``, a
         critic ``MLP`` of the same kind over ``cat(observation, action)``, no module hooks, no
-        autocast, no subclass override of the TD3Loss members it replaces; and a flat batch without
+        autocast other than to bfloat16 (under which it computes as :meth:`matmul_dtype` says), no
+        subclass override of the TD3Loss members it replaces; and a flat batch without
         prioritised weights, loss masks, ``steps_to_next_obs`` or inputs that need gradients.
         """
         reason = self._refusal(tensordict)
@@ -93,17 +94,17 @@ class ManualGradTD3Loss(TD3Loss):
         observation, action, reward = tensordict.get("observation"), tensordict.get("action"), tensordict.get(("next", "reward"))
         if self._needs_gradient(observation, action, reward):
             return super().value_loss(tensordict)
-        layout = self._manual_layout()
+        layout, dtype = self._manual_layout(), self.matmul_dtype()
         noise = (torch.randn_like(action) * self.policy_noise).clamp(-self.noise_clip, self.noise_clip)  # first, as TD3Loss
         with torch.no_grad():
             next_observation = tensordict.get(("next", "observation"))
-            x = squash(self.actor_network.module[1], chain.forward(layout.target_actor, next_observation), *layout.target_bounds)
+            x = squash(self.actor_network.module[1], chain.forward(chain.cast(layout.target_actor, dtype), next_observation), *layout.target_bounds)
             next_action = (x + noise).clamp(self.min_action, self.max_action)
-            next_value = chain.stacked(layout.target_critics, next_observation, next_action).min(0)[0].unsqueeze(-1)
+            next_value = chain.stacked(chain.cast(layout.target_critics, dtype), next_observation, next_action).min(0)[0].unsqueeze(-1)
             terminated = tensordict.get(("next", "terminated"), default=tensordict.get(("next", "done")))
             target_value = (reward + self.value_estimator.gamma * (~terminated).int() * next_value).squeeze(-1)
         x = torch.cat([observation, action], -1)
-        loss, current_qvalue, td_error = function_apply(_CriticLoss, layout.critic_activations, x, target_value, *layout.critic_parameters)
+        loss, current_qvalue, td_error = function_apply(_CriticLoss, (layout.critic_activations, dtype), x, target_value, *layout.critic_parameters)
         return loss, {"td_error": td_error, "next_state_value": next_value.squeeze(-1), "pred_value": current_qvalue, "target_value": target_value}
 
     def actor_loss(self, tensordict) -> tuple[torch.Tensor, dict]:
@@ -114,8 +115,10 @@ class ManualGradTD3Loss(TD3Loss):
         observation = tensordict.get("observation")
         if self._needs_gradient(observation):
             return super().actor_loss(tensordict)
-        layout = self._manual_layout()
-        loss, state_action_value = function_apply(_ActorLoss, layout.actor_spec, layout.actor_constants, observation, *layout.actor_parameters)
+        layout, dtype = self._manual_layout(), self.matmul_dtype()
+        low, high, critic1 = layout.actor_constants
+        constants = (low, high, chain.cast(critic1, dtype))
+        loss, state_action_value = function_apply(_ActorLoss, (*layout.actor_spec, dtype), constants, observation, *layout.actor_parameters)
         return loss, {"state_action_value_actor": state_action_value}
 
     def _refusal(self, tensordict) -> str | None:
@@ -139,8 +142,8 @@ class ManualGradTD3Loss(TD3Loss):
             return "value estimator keys other than the defaults"
         if module_hooks(layout.hook_dicts):
             return "module hooks"
-        if torch.is_autocast_enabled(layout.device_type):
-            return "autocast"
+        if torch.is_autocast_enabled(layout.device_type) and torch.get_autocast_dtype(layout.device_type) != torch.bfloat16:
+            return f"autocast to {str(torch.get_autocast_dtype(layout.device_type)).removeprefix('torch.')}"
         if tensordict is None:
             return None
         if reweights_or_masks(self, tensordict):
@@ -149,6 +152,16 @@ class ManualGradTD3Loss(TD3Loss):
             return f"batch of {tensordict.batch_dims} dims"
         if has_entry(tensordict, keys.steps_to_next_obs):
             return "steps_to_next_obs"
+        return None
+
+    def matmul_dtype(self) -> torch.dtype | None:
+        """``torch.bfloat16`` inside ``torch.autocast(..., dtype=torch.bfloat16)`` (``TD3(precision="bf16")``):
+        the matrix products, the hidden activations and their gradients in bfloat16, as autocast runs
+        ``TD3Loss``, the losses, the TD target and the parameters' gradients in their own float32;
+        None otherwise (the parameters' own dtype throughout)."""
+        device_type = self._manual_layout().device_type
+        if torch.is_autocast_enabled(device_type) and torch.get_autocast_dtype(device_type) == torch.bfloat16:
+            return torch.bfloat16
         return None
 
     @staticmethod
@@ -206,21 +219,24 @@ class _CriticLoss(torch.autograd.Function):
     """TD3's critic loss ``sum_k mean_B (Q_k(s, a) - y)^2`` of the stacked critics (one ``baddbmm`` per
     layer for both) and its gradient by the chain rule from ``dL/dQ = 2 (Q - y) / B``.
 
-    ``forward(activations, cat(s, a), y, w_1, b_1, w_2, ...)`` returns the loss, ``Q`` and the
+    ``forward((activations, dtype), cat(s, a), y, w_1, b_1, w_2, ...)`` returns the loss, ``Q`` and the
     squared errors (the last two without gradient); ``backward`` the gradients of the parameters
-    that need one (None for the others), scaled by the loss's incoming gradient.
+    that need one (None for the others), scaled by the loss's incoming gradient. ``dtype`` (None: the
+    parameters') is that of the products and activations; the errors are in ``y``'s.
     """
 
     @staticmethod
-    def forward(ctx, activations, x, target, *parameters):
+    def forward(ctx, spec, x, target, *parameters):
+        activations, dtype = spec
         inputs = []
-        layers = chain.layers(parameters, activations)
+        computed = chain.cast_tensors(parameters, dtype)
+        layers = chain.layers(computed, activations)
         current_qvalue = chain.forward(layers, x.expand(parameters[0].shape[0], *x.shape), inputs).squeeze(-1)
         error = current_qvalue - target
         td_error = error.pow(2)
         loss = td_error.sum(0).mean()
-        ctx.save_for_backward(error, *parameters, *inputs)  # autograd frees them after the backward
-        ctx.activations = activations
+        ctx.save_for_backward(error, *computed, *inputs)  # autograd frees them after the backward
+        ctx.activations, ctx.parameter_dtype = activations, parameters[0].dtype
         ctx.mark_non_differentiable(current_qvalue, td_error)
         ctx.set_materialize_grads(False)
         return loss, current_qvalue, td_error
@@ -233,9 +249,9 @@ class _CriticLoss(torch.autograd.Function):
         count = 2 * len(ctx.activations)
         if grad_loss is None:
             return (None,) * (3 + count)
-        grad = (error * (2.0 / error.shape[-1])).unsqueeze(-1) * grad_loss  # dL/dQ, [2, B, 1]
+        grad = ((error * (2.0 / error.shape[-1])).unsqueeze(-1) * grad_loss).to(saved[0].dtype)  # dL/dQ, [2, B, 1]
         grads, _ = chain.backward(chain.layers(saved[:count], ctx.activations), saved[count:], grad, ctx.needs_input_grad[3:])
-        return None, None, None, *grads
+        return None, None, None, *chain.cast_tensors(grads, ctx.parameter_dtype)
 
 
 class _ActorLoss(torch.autograd.Function):
@@ -244,23 +260,25 @@ class _ActorLoss(torch.autograd.Function):
     to the action, through ``TanhModule``'s squashing, then through the actor's layers.
 
     ``forward(spec, constants, s, *actor parameters)`` returns the loss and ``Q_1`` (without
-    gradient); ``spec`` = (actor activations, TanhModule's ``clamp`` and ``non_trivial``),
-    ``constants`` = (action low, action high, the first critic's detached layers).
+    gradient); ``spec`` = (actor activations, TanhModule's ``clamp`` and ``non_trivial``, the dtype
+    of the products and activations or None for the parameters'), ``constants`` = (action low,
+    action high, the first critic's detached layers in that dtype).
     """
 
     @staticmethod
     def forward(ctx, spec, constants, observation, *parameters):
-        activations, clamp, non_trivial = spec
+        activations, clamp, non_trivial, dtype = spec
         low, high, critic1 = constants
         actor_inputs, critic_inputs = [], []
-        squashed = chain.forward(chain.layers(parameters, activations), observation, actor_inputs).tanh()  # squash(), step by step: its backward needs each step
+        computed = chain.cast_tensors(parameters, dtype)
+        squashed = chain.forward(chain.layers(computed, activations), observation, actor_inputs).tanh()  # squash(), step by step: its backward needs each step
         eps = torch.finfo(squashed.dtype).resolution
         clamped = squashed.clamp(-1 + eps, 1 - eps) if clamp else squashed
         action = low + (high - low) * (clamped + 1) / 2 if non_trivial else clamped
-        state_action_value = chain.forward(critic1, torch.cat([observation, action], -1), critic_inputs).squeeze(-1)
+        state_action_value = chain.forward(critic1, torch.cat([observation, action], -1), critic_inputs).squeeze(-1).to(parameters[0].dtype)
         loss = -state_action_value.mean()
-        ctx.save_for_backward(squashed, *parameters, *actor_inputs, *critic_inputs)  # autograd frees them after the backward
-        ctx.spec, ctx.constants, ctx.observation_dim = spec, constants, observation.shape[-1]
+        ctx.save_for_backward(squashed, *computed, *actor_inputs, *critic_inputs)  # autograd frees them after the backward
+        ctx.spec, ctx.constants, ctx.observation_dim, ctx.parameter_dtype = spec, constants, observation.shape[-1], parameters[0].dtype
         ctx.mark_non_differentiable(state_action_value)
         ctx.set_materialize_grads(False)
         return loss, state_action_value
@@ -269,7 +287,7 @@ class _ActorLoss(torch.autograd.Function):
     @once_differentiable
     def backward(ctx, grad_loss, _grad_value):
         _released(ctx)
-        activations, clamp, non_trivial = ctx.spec
+        activations, clamp, non_trivial, _ = ctx.spec
         low, high, critic1 = ctx.constants
         count = 2 * len(activations)
         squashed, *saved = ctx.saved_tensors
@@ -285,8 +303,9 @@ class _ActorLoss(torch.autograd.Function):
         if clamp:
             eps = torch.finfo(squashed.dtype).resolution
             grad = torch.where((squashed >= -1 + eps) & (squashed <= 1 - eps), grad, 0.0)
-        grads, _ = chain.backward(chain.layers(parameters, activations), actor_inputs, torch.ops.aten.tanh_backward(grad, squashed), ctx.needs_input_grad[3:])
-        return None, None, None, *grads
+        grad = torch.ops.aten.tanh_backward(grad.to(squashed.dtype), squashed)
+        grads, _ = chain.backward(chain.layers(parameters, activations), actor_inputs, grad, ctx.needs_input_grad[3:])
+        return None, None, None, *chain.cast_tensors(grads, ctx.parameter_dtype)
 
 
 def _noting_hooks(function: type[torch.autograd.Function], outputs: int) -> type:

@@ -40,6 +40,20 @@ def layers(parameters, activations) -> list:
     return [(parameters[2 * index], parameters[2 * index + 1], act) for index, act in enumerate(activations)]
 
 
+def cast_tensors(tensors, dtype: torch.dtype | None) -> tuple:
+    """``tensors`` in ``dtype`` (None: as they are; None entries stay None)."""
+    if dtype is None:
+        return tuple(tensors)
+    return tuple(None if tensor is None else tensor.to(dtype) for tensor in tensors)
+
+
+def cast(layers, dtype: torch.dtype | None) -> list:
+    """``(weight, bias, activation)`` layers with weight and bias in ``dtype`` (None: ``layers`` itself)."""
+    if dtype is None:
+        return layers
+    return [(weight.to(dtype), bias.to(dtype), act) for weight, bias, act in layers]
+
+
 def stacked(layers, observation, action) -> torch.Tensor:
     """``[2, B]`` values of the stacked critics: one ``baddbmm`` per layer."""
     x = torch.cat([observation, action], -1)
@@ -48,8 +62,10 @@ def stacked(layers, observation, action) -> torch.Tensor:
 
 def forward(layers, x: torch.Tensor, inputs: list | None = None) -> torch.Tensor:
     """``x`` through ``(weight, bias, activation)`` layers: ``addmm`` for a network's ``[out, in]``
-    weights, ``baddbmm`` for the twin critics' stacked ``[2, out, in]``. ``inputs`` (if given)
-    receives each layer's input, which :func:`backward` needs."""
+    weights, ``baddbmm`` for the twin critics' stacked ``[2, out, in]``, in the weights' dtype (``x``
+    is cast to it). ``inputs`` (if given) receives each layer's input, which :func:`backward` needs."""
+    if x.dtype != layers[0][0].dtype:
+        x = x.to(layers[0][0].dtype)
     for weight, bias, act in layers:
         if inputs is not None:
             inputs.append(x)

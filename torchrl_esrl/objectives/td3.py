@@ -6,6 +6,7 @@ the policy delay; :func:`torchrl_esrl.algorithm.td3_phase.td3_phase` runs it ins
 """
 from __future__ import annotations
 
+import contextlib
 import math
 
 import torch
@@ -76,6 +77,11 @@ class TD3:
             call: :func:`~torchrl_esrl.torchrl_private.fused_adam_step`).
         num_threads: torch threads while :func:`~torchrl_esrl.algorithm.td3_phase.td3_phase` runs
             (None: leave the process's count; docs/performance.md).
+        precision: ``"fp32"`` or ``"bf16"``: the losses computed under
+            ``torch.autocast(dtype=torch.bfloat16)`` (matrix products and activations in bfloat16,
+            loss values in float32; :meth:`ManualGradTD3Loss.matmul_dtype
+            <torchrl_esrl.objectives.manual_grad.ManualGradTD3Loss.matmul_dtype>`), the backward
+            outside it; parameters, gradients, Adam's moments and the targets stay float32.
 
     To change the gradients (an extra loss term, clipping), override :meth:`backward` in a
     subclass; hooks on the parameters or optimizers, and frozen parameters
@@ -90,6 +96,7 @@ class TD3:
     # pair, its target and Adam's two moments.
     HELD_ACTOR_COPIES = 4 + 1
     HELD_CRITIC_COPIES = 2 * 4
+    PRECISIONS = ("fp32", "bf16")
 
     def __init__(
         self,
@@ -109,6 +116,7 @@ class TD3:
         target_update_class: type[SoftUpdate] = SoftUpdate,
         optimizer_impl: str = "default",
         num_threads: int | None = None,
+        precision: str = "fp32",
     ):
         self.actor = actor
         self.action_spec = action_spec
@@ -138,12 +146,18 @@ class TD3:
             AdditiveGaussianModule(spec=action_spec, sigma_init=1.0, sigma_end=1.0, mean=0.0, std=float(exploration_noise)),
         )
         self.num_threads = num_threads
+        if precision not in self.PRECISIONS:
+            raise ValueError(f"precision must be {' or '.join(self.PRECISIONS)}, got {precision!r}")
+        self.precision = precision
+        device_type = next(actor.parameters()).device.type
+        self._loss_context = (lambda: torch.autocast(device_type, dtype=torch.bfloat16)) if precision == "bf16" else contextlib.nullcontext
         self.updates = 0
 
     def update(self, batch: TensorDictBase) -> dict[str, float]:
         """One TD3 step: critic update; every ``policy_delay`` steps actor and target updates."""
         self._zero_grad(self.critic_optimizer)
-        critic_loss, _ = self.loss.value_loss(batch)
+        with self._loss_context():
+            critic_loss, _ = self.loss.value_loss(batch)
         self.backward(critic_loss, self.critic_optimizer)
         out = {"critic_loss": critic_loss.item()}
         if not math.isfinite(out["critic_loss"]):
@@ -152,7 +166,8 @@ class TD3:
         self.updates += 1
         if self.updates % self.policy_delay == 0:
             self._zero_grad(self.actor_optimizer)
-            actor_loss, _ = self.loss.actor_loss(batch)
+            with self._loss_context():
+                actor_loss, _ = self.loss.actor_loss(batch)
             self.backward(actor_loss, self.actor_optimizer)
             out["actor_loss"] = actor_loss.item()
             if not math.isfinite(out["actor_loss"]):

@@ -109,6 +109,7 @@ def make_td3(cfg: DictConfig, actor, critic, action_spec, pieces: Collection[str
         target_update_class=ForeachSoftUpdate if "soft_update" in fast else SoftUpdate,
         optimizer_impl="fused" if "adam" in fast else "default",
         num_threads=c.num_threads if c.num_threads is not None else job_cores(),
+        precision=c.precision,
     )
     if c.random_frames > 0:
         td3.exploration_policy = RandomWarmup(td3.exploration_policy, action_spec, c.random_frames, seed=int(cfg.seed) + 3)

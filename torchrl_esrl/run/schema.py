@@ -50,10 +50,11 @@ def count(default):
     return positive(default, integer=True)
 
 
-def one_of(default, options: tuple = (), among: str | None = None, packages: dict | None = None):
+def one_of(default, options: tuple = (), among: str | None = None, packages: dict | None = None, added: bool = False):
     """One of ``options``, then of ``among`` (the dotted name of the list, mapping or function of
-    the component that owns the names, read when checked); ``packages``: value -> package it needs."""
-    return _field(default, {"kind": "choice", "options": options, "among": among, "packages": packages or {}})
+    the component that owns the names, read when checked); ``packages``: value -> package it needs;
+    ``added``: as :func:`added`."""
+    return _field(default, {"kind": "choice", "options": options, "among": among, "packages": packages or {}}, **({"added": True} if added else {}))
 
 
 def layers(default):
@@ -125,6 +126,8 @@ class TD3Config:
     # torch threads of the TD3 phase; null: this job's share of the cores the process may use (CPU affinity)
     # divided among the jobs run beside it (torchrl_esrl/threads.py; 2 cores, two joblib jobs: 1 each)
     num_threads: Optional[int] = number(None, low=1, integer=True)
+    # fp32 | bf16: the TD3 losses under torch.autocast(bfloat16), float32 weights and Adam (TD3's `precision`; docs/deviations.md)
+    precision: str = one_of("fp32", among="torchrl_esrl.objectives.td3.TD3.PRECISIONS", added=True)
 
 
 @dataclass
