@@ -294,7 +294,7 @@ LOSSES = [
     Case("priority-weights", batch=priority_weights, reaches=LOSS_PARTS),
     # the losses under autocast to bfloat16: the hand-written ones compute in bfloat16 (not handed over),
     # equal to TD3Loss's under autocast to bfloat16 rounding
-    Case("precision-bf16", ("td3.precision=bf16",), reaches=LOSS_PARTS, pieces={"td3_loss": "fast"}, tolerance={"td3_updates": (2e-2, 1e-3)}),
+    Case("precision-bf16", ("td3.precision=bf16",), reaches=LOSS_PARTS, pieces={"td3_loss": "fast"}, tolerance={"td3_updates": (2e-2, 3e-3)}),
 ]
 
 # TD3 trained through loss.backward(): other numbers of critics (the hand-written loss is for the

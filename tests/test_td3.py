@@ -757,14 +757,15 @@ def test_bf16_updates_keep_float32_weights_adam_and_targets_and_follow_the_float
     fp32, fp32_outs = _td3_runs(chosen)
     state = _state(bf16)
     assert all(p.dtype == torch.float32 for p in state["parameters"])
-    assert all(v.dtype == torch.float32 for target in state["targets"] for v in target.values(True, True) if v.is_floating_point())
+    targets = (bf16.loss.target_actor_network_params, bf16.loss.target_qvalue_network_params)
+    assert all(v.dtype == torch.float32 for target in targets for v in target.values(True, True) if v.is_floating_point())
     moments = [s for optimizer in (bf16.actor_optimizer, bf16.critic_optimizer) for s in optimizer.state.values()]
     assert moments and all(s["exp_avg"].dtype == torch.float32 for s in moments)
     for got, expected in zip(bf16_outs, fp32_outs):
         assert got.keys() == expected.keys()
         assert all(got[key] == pytest.approx(expected[key], rel=2e-2) for key in got)
     moved = max((a - b).abs().max().item() for a, b in zip(state["parameters"], _state(fp32)["parameters"]))
-    assert moved > 1e-7
+    assert moved > 1e-4  # float32 rounding moves them by under 1e-6 (test_an_edit_gives_the_fast_pieces_the_references_result)
     reference, reference_outs = _td3_runs(REFERENCE, precision="bf16")
     assert all(got[key] == pytest.approx(expected[key], rel=2e-2) for got, expected in zip(bf16_outs, reference_outs) for key in got)
 
