@@ -8,8 +8,8 @@
   ``make_td3``'s fast pieces) in float32 and with ``precision="bf16"``, each at 1 and 2 threads; the
   products are also timed in bfloat16. An update that computes these products in
   float32 with these kernels takes at least their time: ``plain / products`` is the most any such
-  update can gain over the plain one. The plain update's FLOPs (``torch.utils.flop_counter``) give
-  the products' rate.
+  update can gain over the plain one. Their FLOPs and the plain update's (``torch.utils.flop_counter``)
+  give their rates.
 - **ES evaluation.** Per env step of one chunk as ``MujocoBatchBackend`` plays it on one core (15
   mirrored pairs, the default chunking of 120 members on 2 cores): the chunk's raw ``mujoco.batch``
   physics (fixed controls) and its mirrored forward (:meth:`PopulationActor.mirrored`, one BLAS
@@ -96,13 +96,11 @@ def update_products(obs_dim: int, act_dim: int, batch: int = BATCH, hidden: int 
     return critic_products, actor_products
 
 
-def plain_update_flops(obs_dim: int, act_dim: int, batch) -> float:
-    """FLOPs of one plain update, averaged over ``policy_delay`` updates (torch's flop counter)."""
-    torch.manual_seed(0)
-    td3 = PlainTD3(obs_dim, act_dim)
+def flops_per_update(update) -> float:
+    """FLOPs of ``update()`` (torch's flop counter), averaged over ``policy_delay`` calls."""
     with FlopCounterMode(display=False) as counter:
         for _ in range(POLICY_DELAY):
-            td3.update(batch)
+            update()
     return counter.get_total_flops() / POLICY_DELAY
 
 
@@ -144,12 +142,15 @@ def td3_bounds(env_id: str, repeats: int, calls: int, capacity: int) -> dict:
         methods[f"loop_bf16_{threads}threads"] = on(threads, lambda: fast_bf16.update(buffer.sample()))
         methods[f"products_bf16_{threads}threads"] = on(threads, products_bf16)
     timings = interleaved(methods, calls=calls, repeats=repeats, warmup=10)
-    flops = plain_update_flops(obs_dim, act_dim, buffer.sample())
+    torch.manual_seed(0)
+    plain_flops = flops_per_update(lambda td3=PlainTD3(obs_dim, act_dim), batch=buffer.sample(): td3.update(batch))
+    products_flops = flops_per_update(products_in(torch.float32))
     best = {kind: min(timings[f"{kind}_{n}threads"]["s_per_call"] for n in (1, 2)) for kind in ("plain", "loop", "products", "loop_bf16", "products_bf16")}
     return {
         "env": env_id, "capacity": capacity, "batch_size": BATCH, "methods": timings,
-        "plain_update_mflop": flops / 1e6,
-        "products_gflop_per_s": {n: flops / timings[f"products_{n}threads"]["s_per_call"] / 1e9 for n in (1, 2)},
+        "plain_update_mflop": plain_flops / 1e6,
+        "products_mflop": products_flops / 1e6,  # the fast update's: it skips the first critic's weight gradients in the actor update
+        "products_gflop_per_s": {n: products_flops / timings[f"products_{n}threads"]["s_per_call"] / 1e9 for n in (1, 2)},
         "best_ms": {kind: seconds * 1e3 for kind, seconds in best.items()},
         "loop_over_plain": best["plain"] / best["loop"],  # > 1: the loop's update is faster
         "most_over_plain": best["plain"] / best["products"],  # the products alone against plain
@@ -224,7 +225,7 @@ def main(argv=None) -> dict:
         report["td3"][env_id] = td3 = td3_bounds(env_id, args.repeats, args.calls, args.capacity)
         print(f"{env_id} TD3 update (best thread count): plain {td3['best_ms']['plain']:.2f} ms, loop {td3['best_ms']['loop']:.2f} ms "
               f"({td3['loop_over_plain']:.2f}x plain), its matrix products alone {td3['best_ms']['products']:.2f} ms "
-              f"(at most {td3['most_over_plain']:.2f}x plain; {td3['plain_update_mflop']:.0f} MFLOP); bf16: loop {td3['best_ms']['loop_bf16']:.2f} ms "
+              f"(at most {td3['most_over_plain']:.2f}x plain; {td3['products_mflop']:.0f} MFLOP, plain {td3['plain_update_mflop']:.0f}); bf16: loop {td3['best_ms']['loop_bf16']:.2f} ms "
               f"({td3['loop_bf16_over_loop']:.2f}x the float32 loop), products {td3['best_ms']['products_bf16']:.2f} ms")
         report["es"][env_id] = es = es_bounds(env_id, args.steps, args.repeats)
         ms = {name: seconds * 1e3 for name, seconds in es["per_step_s"].items()}
