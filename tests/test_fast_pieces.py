@@ -20,7 +20,7 @@ def _config(implementation="fast", **td3):
     return OmegaConf.create({
         "device": "cpu", "implementation": implementation, "seed": 0,
         "td3": {"frames_per_batch": 5, "lr": 3e-4, "gamma": 0.99, "tau": 0.005, "policy_noise": 0.2, "noise_clip": 0.5,
-                "policy_delay": 2, "exploration_noise": 0.1, "loss_function": "l2", "num_threads": None, "random_frames": 0, **td3},
+                "policy_delay": 2, "exploration_noise": 0.1, "loss_function": "l2", "num_threads": None, "random_frames": 0, "precision": "fp32", **td3},
     })
 
 

@@ -617,9 +617,9 @@ def test_a_checkpoint_config_from_before_a_rename_reads_in_todays_names():
     from torchrl_esrl.run.resume import in_todays_names
 
     old = {"seed": 0, "td3": {"fast": True, "lr": 3e-4}}
-    assert in_todays_names(old) == {"seed": 0, "implementation": "fast", "td3": {"fast": None, "lr": 3e-4}}
+    assert in_todays_names(old) == {"seed": 0, "implementation": "fast", "td3": {"fast": None, "lr": 3e-4, "precision": "fp32"}}
     assert in_todays_names({"td3": {"fast": False}})["implementation"] == "reference"
-    today = {"implementation": "reference", "td3": {"fast": None}, "es": {"schedule": "async"}}
+    today = {"implementation": "reference", "td3": {"fast": None, "precision": "fp32"}, "es": {"schedule": "async"}}
     assert in_todays_names(today) == today
     assert in_todays_names({"mode": "async", "es": {"sigma": 0.005}}) == {"mode": None, "es": {"sigma": 0.005, "schedule": "async"}}
     assert old["td3"]["fast"] is True  # the checkpoint's own dict is left as it was
