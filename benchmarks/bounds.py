@@ -41,6 +41,7 @@ from benchmarks.td3_update import FAST_TD3, PlainTD3
 from torchrl_esrl.collectors.mujoco_batch import MujocoBatchBackend
 from torchrl_esrl.data.multibuffer import MultiBuffer
 from torchrl_esrl.modules.networks import PopulationActor, make_actor, make_critic, one_blas_thread
+from torchrl_esrl.objectives import mlp_chain_rule as chain
 from torchrl_esrl.objectives.td3 import TD3
 
 BATCH, HIDDEN, POLICY_DELAY = 256, 256, 2
@@ -48,8 +49,8 @@ BATCH, HIDDEN, POLICY_DELAY = 256, 256, 2
 
 def update_products(obs_dim: int, act_dim: int, batch: int = BATCH, hidden: int = HIDDEN, dtype=torch.float32):
     """``(critic_products, actor_products)``: callables making the matrix products of one critic
-    update and of one actor update as :mod:`~torchrl_esrl.objectives.mlp_chain_rule` makes them,
-    in ``dtype``."""
+    update and of one actor update through :mod:`~torchrl_esrl.objectives.mlp_chain_rule` itself, on
+    layers without activations and asking for the weights' gradients only, in ``dtype``."""
     g = torch.Generator().manual_seed(0)
 
     def randn(*shape):
@@ -57,41 +58,30 @@ def update_products(obs_dim: int, act_dim: int, batch: int = BATCH, hidden: int 
 
     sizes = {"actor": [(obs_dim, hidden), (hidden, hidden), (hidden, act_dim)],
              "critic": [(obs_dim + act_dim, hidden), (hidden, hidden), (hidden, 1)]}
-    actor = [(randn(out, inp), randn(out)) for inp, out in sizes["actor"]]
-    target_actor = [(randn(out, inp), randn(out)) for inp, out in sizes["actor"]]
-    critics = [(randn(2, out, inp), randn(2, out)) for inp, out in sizes["critic"]]
-    target_critics = [(randn(2, out, inp), randn(2, out)) for inp, out in sizes["critic"]]
-    critic1 = [(w[0], b[0]) for w, b in critics]
+
+    def network(stack, kind):  # (weight, bias, no activation) layers: the products alone
+        return [(randn(*stack, out, inp), randn(*stack, out), None) for inp, out in sizes[kind]]
+
+    actor, target_actor = network((), "actor"), network((), "actor")
+    critics, target_critics = network((2,), "critic"), network((2,), "critic")
+    critic1 = [(w[0], b[0], None) for w, b, _ in critics]
     observation, critic_input = randn(batch, obs_dim), randn(batch, obs_dim + act_dim)
-
-    def forward(layers, x, inputs):
-        for weight, bias in layers:
-            inputs.append(x)
-            x = torch.addmm(bias, x, weight.t()) if weight.dim() == 2 else torch.baddbmm(bias.unsqueeze(1), x, weight.transpose(1, 2))
-        return x
-
-    def backward(layers, inputs, grad, weight_grads=True, input_grad=False):
-        for index in range(len(layers) - 1, -1, -1):
-            if weight_grads:
-                torch.matmul(grad.transpose(-2, -1), inputs[index])
-            if index or input_grad:
-                grad = torch.matmul(grad, layers[index][0])
-        return grad
+    weights_only, no_parameters = (True, False) * 3, (False,) * 6
 
     def critic_products():
-        forward(target_actor, observation, [])
+        chain.forward(target_actor, observation)
         stacked_input = critic_input.expand(2, *critic_input.shape)
-        forward(target_critics, stacked_input, [])
+        chain.forward(target_critics, stacked_input)
         inputs = []
-        q = forward(critics, stacked_input, inputs)
-        backward(critics, inputs, q)
+        q = chain.forward(critics, stacked_input, inputs)
+        chain.backward(critics, inputs, q, weights_only)
 
     def actor_products():
         actor_inputs, critic_inputs = [], []
-        forward(actor, observation, actor_inputs)
-        value = forward(critic1, critic_input, critic_inputs)
-        grad = backward(critic1, critic_inputs, value, weight_grads=False, input_grad=True)
-        backward(actor, actor_inputs, grad[:, obs_dim:].contiguous())
+        chain.forward(actor, observation, actor_inputs)
+        value = chain.forward(critic1, critic_input, critic_inputs)
+        _, grad = chain.backward(critic1, critic_inputs, value, no_parameters, input_grad=True)
+        chain.backward(actor, actor_inputs, grad[:, obs_dim:].contiguous(), weights_only)
 
     return critic_products, actor_products
 

@@ -142,7 +142,7 @@ class ManualGradTD3Loss(TD3Loss):
             return "value estimator keys other than the defaults"
         if module_hooks(layout.hook_dicts):
             return "module hooks"
-        if torch.is_autocast_enabled(layout.device_type) and torch.get_autocast_dtype(layout.device_type) != torch.bfloat16:
+        if torch.is_autocast_enabled(layout.device_type) and self.matmul_dtype() is None:
             return f"autocast to {str(torch.get_autocast_dtype(layout.device_type)).removeprefix('torch.')}"
         if tensordict is None:
             return None

@@ -31,8 +31,8 @@ def relu(x: torch.Tensor) -> torch.Tensor:
 
 
 ACTIVATIONS = {"tanh": tanh, "relu": relu, None: None}  # the kernels of FAST_ACTIVATIONS (None: no activation)
-# d activation: (gradient w.r.t. the output, the output) -> gradient w.r.t. the input, as autograd computes it
-ACTIVATION_BACKWARD = {tanh: torch.ops.aten.tanh_backward, relu: lambda grad, out: torch.ops.aten.threshold_backward(grad, out, 0)}
+# d activation: (gradient w.r.t. the output, the output) -> gradient w.r.t. the input, as autograd computes it (None: none)
+ACTIVATION_BACKWARD = {tanh: torch.ops.aten.tanh_backward, relu: lambda grad, out: torch.ops.aten.threshold_backward(grad, out, 0), None: lambda grad, out: grad}
 
 
 def layers(parameters, activations) -> list:
