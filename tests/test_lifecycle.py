@@ -392,6 +392,21 @@ def test_cem_rl_with_routed_buffers_fills_good_bad_and_noisy_and_learns_at_the_r
     assert last["td3_updates"] > 0 and last["best_return"] >= last["threshold"]
 
 
+EVALUATES_A_POPULATION = {"es_td3.py", "es.py", "cem_rl.py", "cem_rl_buffers.py"}
+TRAINS_TD3 = {"es_td3.py", "td3.py", "cem_rl.py", "cem_rl_buffers.py"}
+
+
+@pytest.mark.e2e
+@pytest.mark.parametrize("script", list(RECIPES))
+def test_the_summary_names_what_computes_every_component_whatever_the_recipe_calls_it(finished, script):
+    """The pieces and threads of ``summary.json`` come from the components a recipe builds, found by
+    type: CEM-RL's population collector is reported as the ES-TD3 collector is."""
+    summary = json.loads((finished(script) / "summary.json").read_text())
+    pieces, threads = set(summary["pieces"]), set(summary["threads"])
+    assert ({"es_forward", "es_physics"} <= pieces and "es" in threads) == (script in EVALUATES_A_POPULATION), summary
+    assert ({"td3_loss", "soft_update", "adam"} <= pieces and "td3" in threads) == (script in TRAINS_TD3), summary
+
+
 @pytest.mark.e2e
 def test_fresh_run_goes_next_to_the_finished_one(reference, tmp_path):
     run_dir = tmp_path / "run"

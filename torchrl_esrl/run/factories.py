@@ -271,12 +271,19 @@ def make_overwrite_rule(cfg: DictConfig) -> OverwriteRule:
     return OverwriteRule(window=cfg.overwrite.window, mode=cfg.overwrite.mode, mix=cfg.overwrite.mix)
 
 
+def component(components: dict, kind: type):
+    """The first of a recipe's ``components`` (name -> object, as given to ``Run.start``) that is a
+    ``kind``, or None: the run plumbing finds a component by what it is, not by its name."""
+    return next((value for value in components.values() if isinstance(value, kind)), None)
+
+
 def implementations(cfg: DictConfig, **components) -> dict[str, str]:
     """What computes each piece of :data:`FAST_PIECES` in this run: ``fast``, ``reference``, or
     ``reference (why)`` where ``implementation=fast`` asked for the fast piece and it handed over
-    (``es_physics: reference (env.wrappers: ClipReward)``). ``components`` are the recipe's
-    (``td3``, ``td3_env``, ``buffer``, ``es_collector``; others are ignored); a piece the run
-    does not have is left out."""
+    (``es_physics: reference (env.wrappers: ClipReward)``). ``components`` are the recipe's, found
+    by what they are, whatever the recipe calls them (a :class:`TD3`, a ``TD3EnvState``, a
+    :class:`MultiBuffer`, an :class:`ESCollector`; others are ignored); a piece the run does not
+    have is left out."""
     from torchrl_esrl.collectors.mujoco_batch import MujocoBatchBackend
     from torchrl_esrl.collectors.td3_collector import TD3EnvState, _refusal
 
@@ -291,7 +298,7 @@ def implementations(cfg: DictConfig, **components) -> dict[str, str]:
             out[name] = "reference"
 
     out: dict[str, str] = {}
-    td3 = components.get("td3")
+    td3 = component(components, TD3)
     if td3 is not None:
         loss = td3.loss
         refusal = getattr(loss, "refusal", None)
@@ -299,17 +306,17 @@ def implementations(cfg: DictConfig, **components) -> dict[str, str]:
         piece("td3_loss", isinstance(loss, ManualGradTD3Loss) and why is None, why)
         piece("soft_update", isinstance(td3.target_update, ForeachSoftUpdate))
         piece("adam", td3.optimizer_impl == "fused")
-    td3_env = components.get("td3_env")
-    if isinstance(td3_env, TD3EnvState):
+    td3_env = component(components, TD3EnvState)
+    if td3_env is not None:
         collector = td3_env.collector
         fast = isinstance(collector, GymTD3Collector)
         piece("td3_collector", fast, None if fast or td3 is None else _refusal(collector.env, td3.exploration_policy, cfg.device))
-    buffer = components.get("buffer")
-    if isinstance(buffer, MultiBuffer):
+    buffer = component(components, MultiBuffer)
+    if buffer is not None:
         piece("buffer_writes", buffer.direct_writes)
         piece("buffer_reads", buffer.storage.direct_reads)
-    es_collector = components.get("es_collector")
-    if isinstance(es_collector, ESCollector):
+    es_collector = component(components, ESCollector)
+    if es_collector is not None:
         population = es_collector.population_actor
         piece("es_forward", isinstance(population, PopulationActor), getattr(population, "actor", None) is not None and PopulationActor.refusal(population.actor) or None)
         backend = es_collector.backend

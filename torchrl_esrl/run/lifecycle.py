@@ -43,14 +43,16 @@ from hydra.experimental.callback import Callback
 from omegaconf import DictConfig, OmegaConf, read_write
 from tqdm.auto import tqdm
 
+from torchrl_esrl.collectors.es_collector import ESCollector
 from torchrl_esrl.envs import EnvSizes, EnvSpec, env_sizes
 from torchrl_esrl.errors import CheckpointWriteError, ConfigError
+from torchrl_esrl.objectives.td3 import TD3
 from torchrl_esrl.run.algorithm_info import AlgorithmInfo
 from torchrl_esrl.run.capacity import Holding, estimate
 from torchrl_esrl.run.checkpoint import CHECKPOINT_DIR, RunCheckpoint
 from torchrl_esrl.run.console import final_lines, iteration_line, print_config
 from torchrl_esrl.run.determinism import make_deterministic
-from torchrl_esrl.run.factories import implementation_line, implementations
+from torchrl_esrl.run.factories import component, implementation_line, implementations
 from torchrl_esrl.run.harness import RunHarness
 from torchrl_esrl.run.lock import RunLock
 from torchrl_esrl.run.metrics import read_metrics
@@ -144,9 +146,10 @@ def threads_used(components: dict) -> dict:
     """The threads a run's phases use (``summary.json``'s ``threads``): the TD3 phase's torch
     threads and the ES backend's MuJoCo threads, where the run has them."""
     threads = {}
-    if getattr(components.get("td3"), "num_threads", None) is not None:
-        threads["td3"] = int(components["td3"].num_threads)
-    es_threads = getattr(getattr(components.get("es_collector"), "backend", None), "nthread", None)
+    td3 = component(components, TD3)
+    if getattr(td3, "num_threads", None) is not None:
+        threads["td3"] = int(td3.num_threads)
+    es_threads = getattr(getattr(component(components, ESCollector), "backend", None), "nthread", None)
     if es_threads is not None:
         threads["es"] = int(es_threads)
     return threads
