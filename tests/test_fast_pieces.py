@@ -119,6 +119,17 @@ def test_gym_td3_collector_hands_an_actor_with_other_layers_to_the_collector(kin
     collector.shutdown()
 
 
+def test_td3_in_bfloat16_says_in_one_line_that_it_is_not_for_results(capsys):
+    """``td3.precision=bf16`` (docs/deviations.md, 39) is built with a one-line warning on stderr;
+    float32 without one."""
+    env = make_env("hopper", seed=0, max_episode_steps=20)
+    make_td3(_config(), _actor(env, "tanh"), make_critic(11, 3, (32, 32)), env.action_spec)
+    assert capsys.readouterr().err == ""
+    td3 = make_td3(_config(precision="bf16"), _actor(env, "tanh"), make_critic(11, 3, (32, 32)), env.action_spec)
+    err = capsys.readouterr().err
+    assert td3.precision == "bf16" and err.count("\n") == 1 and "td3.precision=bf16" in err and "docs/deviations.md, 39" in err
+
+
 # ---------------------------------------------------------------------------- TD3 update
 def _batch(n=64, **extra):
     from benchmarks.common import transitions

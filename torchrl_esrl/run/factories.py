@@ -14,6 +14,8 @@ its reference would (another layer, transform or loss) hands over to the referen
 from __future__ import annotations
 
 import copy
+import logging
+import sys
 from collections.abc import Collection
 
 import torch
@@ -36,7 +38,13 @@ from torchrl_esrl.es.cem import DiagonalCEM
 from torchrl_esrl.run.capacity import Holding, bytes_per_transition, mlp_parameters, network_holding, population_holdings
 from torchrl_esrl.threads import job_cores
 
+log = logging.getLogger(__name__)
+
 IMPLEMENTATIONS = ("fast", "reference")
+BF16_WARNING = (
+    "warning: td3.precision=bf16 runs the TD3 actor's tanh squash in bfloat16, whose gradient is exactly 0 once the "
+    "actor saturates (the demo failed in 1 of 2 seeds): not for results (docs/deviations.md, 39)"
+)
 # Each fast piece, and the reference it replaces (docs/performance.md has the table):
 FAST_PIECES = {
     "td3_loss": "ManualGradTD3Loss (hand-written gradients beneath loss.backward()) <- TorchRL TD3Loss + autograd",
@@ -111,6 +119,9 @@ def make_td3(cfg: DictConfig, actor, critic, action_spec, pieces: Collection[str
         num_threads=c.num_threads if c.num_threads is not None else job_cores(),
         precision=c.precision,
     )
+    if c.precision == "bf16":
+        log.warning(BF16_WARNING)
+        print(BF16_WARNING, file=sys.stderr, flush=True)
     if c.random_frames > 0:
         td3.exploration_policy = RandomWarmup(td3.exploration_policy, action_spec, c.random_frames, seed=int(cfg.seed) + 3)
     return td3
