@@ -43,7 +43,7 @@ log = logging.getLogger(__name__)
 IMPLEMENTATIONS = ("fast", "reference")
 BF16_WARNING = (
     "warning: td3.precision=bf16 runs the TD3 actor's tanh squash in bfloat16, whose gradient is exactly 0 once the "
-    "actor saturates (the demo failed in 1 of 2 seeds): not for results (docs/deviations.md, 39)"
+    "actor saturates, so the actor can stop learning: not for results (docs/deviations.md, 39)"
 )
 # Each fast piece, and the reference it replaces (docs/performance.md has the table):
 FAST_PIECES = {
