@@ -1,8 +1,9 @@
 """Helpers shared by the benchmarks: interleaved timing, synthetic transitions, machine info.
 
 Every figure is a ratio against a baseline measured in the same run: the machine (2 cores) is
-shared, so absolute rates move by 2x between minutes. :func:`interleaved` runs baseline and
-candidates in turn, repetition after repetition, and reports medians.
+shared, so absolute rates move by up to 1.6x between minutes (docs/performance.md).
+:func:`interleaved` runs baseline and candidates in turn, repetition after repetition, and reports
+medians.
 """
 from __future__ import annotations
 

@@ -93,7 +93,7 @@ class MujocoBatchBackend:
             chunks of (nearly) equal size: more than one per worker evens out episodes that end
             early, and each chunk's noise is a smaller share of the cache.
         min_chunk: members a chunk holds at least, unless that would leave a worker idle: each
-            chunk pays its own numpy bookkeeping per step under the GIL (docs/performance.md).
+            chunk pays its own numpy bookkeeping per step under the GIL.
         persistent: keep one ``MjData`` per simulation (needed, and forced, for Ant's contact forces).
 
     Every member's arithmetic is its own (its physics, and its forward: :class:`PopulationActor`

@@ -263,8 +263,8 @@ class PopulationActor:
     up to float32 rounding), as one ``numpy.einsum("poi,pi->po")`` per layer over views of the
     flat vectors. Written by hand because no library call fits this shape well: each member
     multiplies its own weight matrix by one observation, so a generation is P matrix-vector
-    products that read all P x D parameters per step (the alternatives measured:
-    ``benchmarks/es_population.py``, docs/performance.md). Every member's
+    products that read all P x D parameters per step (``python -m benchmarks.es_population``
+    times it beside the alternatives). Every member's
     arithmetic is its own, so the forward over any contiguous block of members gives them
     bit for bit the actions of the forward over all P (``tests/test_networks.py``).
     """
