@@ -13,7 +13,8 @@
 # status, or "killed" for a piece that left only its .alive file). Once the run has written
 # summary.json, its records go to $RESULTS: metrics.csv, summary.json, config.yaml, pieces.txt,
 # checkpoints.txt (the size in bytes of each checkpoint kept at the end), pauses.txt (when
-# scripts/pause_runs.sh held the run, if it did); and
+# scripts/pause_runs.sh held the run, if it did), arithmetic.txt (where the pieces ran on more than one
+# commit: scripts/tiny_digest.sh of the recipe on each, equal digests meaning the same arithmetic); and
 # the report of the one run goes to $REPORT (recipes/report.py: curves, buffer sizes, ES mean vs
 # TD3 actor). A finished run is never rewritten: calling again only copies the records.
 #
@@ -64,4 +65,12 @@ cp "$DIR/.hydra/config.yaml" "$RESULTS/config.yaml"
 cp "$DIR.pieces" "$RESULTS/pieces.txt"
 [ -f "$DIR.pauses" ] && cp "$DIR.pauses" "$RESULTS/pauses.txt"  # scripts/pause_runs.sh: the run held while a benchmark ran
 du -sb "$DIR"/checkpoints/checkpoint-* | sed "s#$DIR/##" > "$RESULTS/checkpoints.txt"  # bytes of each checkpoint kept at the end
+commits=$(awk '/^piece / {print substr($4, 1, 7)}' "$DIR.pieces" | awk '!seen[$0]++' | tr '\n' ' ')
+recipe=$(basename "${RUN%% *}")
+if [ "$(echo $commits | wc -w)" -gt 1 ] && ! grep -q "^# scripts/tiny_digest.sh $recipe $commits(" "$RESULTS/arithmetic.txt" 2> /dev/null; then
+  # shellcheck disable=SC2086  # one argument per commit
+  digests=$(PYTHON="$PYTHON" scripts/tiny_digest.sh "$recipe" $commits) \
+    && printf '# scripts/tiny_digest.sh %s %s(%s): commit, rows of the tiny preset'"'"'s metrics.csv, sha256 of the rows without wall-time columns\n%s\n' \
+      "$recipe" "$commits" "$(date -u +%F)" "$digests" > "$RESULTS/arithmetic.txt"
+fi
 "$PYTHON" recipes/report.py "$RESULTS" --out "$REPORT" > /dev/null

@@ -7,12 +7,16 @@
 # that spans commits (scripts/paper_run.sh) records this as its arithmetic.txt.
 #
 # Usage: scripts/tiny_digest.sh <recipe.py> <commit>...      e.g. scripts/tiny_digest.sh es_td3.py c08b91b fd992fb
-#   WORK=<dir> (default: a fresh temporary directory) keeps the worktrees and runs; PYTHON=python
+#   WORK=<dir> keeps the worktrees and runs there (default: a temporary directory, removed with its
+#   worktrees at the end); PYTHON=python
 set -u
 recipe=$1; shift
 repo=$(cd "$(dirname "$0")/.." && pwd)
-WORK=${WORK:-$(mktemp -d)}
 PYTHON=${PYTHON:-python}
+if [ -z "${WORK:-}" ]; then
+  WORK=$(mktemp -d)
+  trap 'for tree in "$WORK"/tree-*; do [ -d "$tree" ] && git -C "$repo" worktree remove --force "$tree"; done; rm -rf "$WORK"' EXIT
+fi
 for commit in "$@"; do
   tree=$WORK/tree-$commit
   [ -d "$tree" ] || git -C "$repo" worktree add -f --detach "$tree" "$commit" > /dev/null 2>&1 || { echo "$commit: no such commit" >&2; exit 2; }

@@ -81,3 +81,19 @@ def test_pause_runs_holds_a_run_and_lets_it_finish_with_its_pauses_recorded(tmp_
     lines = (results / "pauses.txt").read_text().splitlines()
     assert [line.split()[0] for line in lines] == ["pause", "resume"]
     assert _script("pause_runs.sh", "halt").returncode == 2
+
+
+def test_tiny_digest_gives_the_same_digest_for_the_same_code_and_refuses_an_unknown_commit(tmp_path):
+    """Two runs of one commit's tiny preset (named by its full and its short hash: two worktrees, two
+    runs) give one digest of 64 hex digits, and the worktrees are gone afterwards; a commit that does
+    not exist is refused by name."""
+    git = lambda *args: subprocess.run(["git", *args], cwd=ROOT, capture_output=True, text=True).stdout.strip()
+    head, trees = git("rev-parse", "HEAD"), git("worktree", "list")
+    done = _script("tiny_digest.sh", "es.py", head, head[:7], TMPDIR=str(tmp_path))
+    assert done.returncode == 0, done.stdout + done.stderr
+    lines = [line.split() for line in done.stdout.splitlines()]
+    assert [line[0] for line in lines] == [head, head[:7]] and all(line[1:3] == ["2", "rows"] for line in lines)
+    assert lines[0][3] == lines[1][3] and len(lines[0][3]) == 64 and int(lines[0][3], 16) >= 0
+    assert git("worktree", "list") == trees and not list(tmp_path.iterdir())
+    refused = _script("tiny_digest.sh", "es.py", "0000000", TMPDIR=str(tmp_path))
+    assert refused.returncode == 2 and refused.stderr.strip() == "0000000: no such commit"
