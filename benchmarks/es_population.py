@@ -18,8 +18,8 @@ one run for:
 Usage: ``python -m benchmarks.es_population [--quick] [--sweep] [--out PATH]``.
 
 OpenMP threads that spin after a torch forward steal the cores MuJoCo's batch threads need next.
-``OMP_WAIT_POLICY`` is read when
-torch loads, so it is set here, before the import, unless the caller set it; the JSON records it.
+``OMP_WAIT_POLICY`` is read when torch loads, so it is set here, before the import, unless the
+caller set it; the JSON records it.
 """
 from __future__ import annotations
 

@@ -65,7 +65,7 @@ cp "$DIR/.hydra/config.yaml" "$RESULTS/config.yaml"
 cp "$DIR.pieces" "$RESULTS/pieces.txt"
 [ -f "$DIR.pauses" ] && cp "$DIR.pauses" "$RESULTS/pauses.txt"  # scripts/pause_runs.sh: the run held while a benchmark ran
 du -sb "$DIR"/checkpoints/checkpoint-* | sed "s#$DIR/##" > "$RESULTS/checkpoints.txt"  # bytes of each checkpoint kept at the end
-commits=$(awk '/^piece / {print substr($4, 1, 7)}' "$DIR.pieces" | awk '!seen[$0]++' | tr '\n' ' ')
+commits=$(awk '/^piece / && !seen[substr($4, 1, 7)]++ {printf "%s ", substr($4, 1, 7)}' "$DIR.pieces")
 recipe=$(basename "${RUN%% *}")
 if [ "$(echo $commits | wc -w)" -gt 1 ] && ! grep -q "^# scripts/tiny_digest.sh $recipe $commits(" "$RESULTS/arithmetic.txt" 2> /dev/null; then
   # shellcheck disable=SC2086  # one argument per commit

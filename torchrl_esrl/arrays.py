@@ -1,8 +1,8 @@
 """numpy views of CPU tensors, for the one-row and few-row copies of the replay buffers.
 
 numpy's indexing and slice copies skip torch's per-call dispatch, which dominates on tensors of a
-few hundred elements (``python -m benchmarks.td3_frame`` times the frame they serve); the views share the tensors' memory, so writing through them is
-writing the tensors.
+few hundred elements (``python -m benchmarks.td3_frame`` times the frame they serve); the views
+share the tensors' memory, so writing through them is writing the tensors.
 """
 from __future__ import annotations
 

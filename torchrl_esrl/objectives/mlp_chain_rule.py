@@ -14,8 +14,8 @@ def tanh(x: torch.Tensor) -> torch.Tensor:
     output) where no gradient is recorded; ``torch.tanh`` otherwise.
 
     numpy's kernel because torch 2.13's CPU ``tanh`` is slower than ``numpy.tanh`` on the update's
-    256x256 float32 activations (``python -m benchmarks.td3_update`` times the update); the two agree to one float32
-    rounding step (tests/test_mlp_chain_rule.py).
+    256x256 float32 activations (``python -m benchmarks.td3_update`` times the update); the two
+    agree to one float32 rounding step (tests/test_mlp_chain_rule.py).
     """
     if x.device.type != "cpu" or x.dtype not in (torch.float32, torch.float64) or (torch.is_grad_enabled() and x.requires_grad):
         return torch.tanh(x)
