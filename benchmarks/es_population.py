@@ -10,7 +10,12 @@ one run for:
   batched_rows  the same with the forward over the flat rows
   one_batch  one chunk: the whole population in one batch stepped on all MuJoCo threads,
              the forward over the mirrored pairs on one thread (``workers=1, chunks_per_worker=1``)
-  raw        the same mujoco.batch stepping with fixed controls: no policy, no rewards (the ceiling)
+  raw        the same mujoco.batch stepping with fixed controls, every member for every step: no
+             policy, no rewards, no termination
+  raw_replay the same mujoco.batch stepping replaying the batched run's own episodes: each member's
+             recorded actions, until its recorded length (physics of the very trajectories the
+             evaluation played, the ceiling for it; ``raw`` steps other states, with other contacts,
+             and never stops early)
   serial     one gymnasium env, offspring after offspring, torch forward per step with the
              offspring's weights loaded into an actor
   lockstep   the reference ``gym`` backend (P gymnasium envs, one batched forward per step)
@@ -87,6 +92,39 @@ def time_raw_physics(env_id: str, members: int, steps: int, seeds, nthread: int)
     return {"steps": members * steps, "seconds": seconds, "steps_per_s": members * steps / seconds}
 
 
+def time_raw_replay(env_id: str, generation, seeds, nthread: int) -> dict:
+    """mujoco.batch stepping alone, replaying ``generation`` (:func:`replay`)."""
+    _, seconds = replay(env_id, generation, seeds, nthread)
+    steps = int(generation.lengths.sum())
+    return {"steps": steps, "seconds": seconds, "steps_per_s": steps / seconds}
+
+
+def replay(env_id: str, generation, seeds, nthread: int) -> tuple[mujoco.batch.Batch, float]:
+    """Steps ``generation``'s episodes again on one mujoco.batch: gymnasium's initial states, then
+    each member's recorded actions, the live members only, until each one's recorded length. The
+    batch as it ends (each member in its last state) and the seconds of the stepping."""
+    env = gym.make(env_id).unwrapped
+    members = len(seeds)
+    lengths = generation.lengths.numpy()
+    member_of = generation.transitions.get(("collector", "traj_ids")).numpy()
+    step_of = np.arange(len(member_of)) - np.repeat(np.cumsum(lengths) - lengths, lengths)
+    actions = np.zeros((members, int(lengths.max()), env.model.nu))
+    actions[member_of, step_of] = generation.transitions.get("action").numpy()
+    batch = mujoco.batch.Batch(env.model, members, nthread)
+    row = np.empty(batch.nstate)
+    for p, seed in enumerate(seeds):
+        env.reset(seed=int(seed))
+        mujoco.mj_getState(env.model, env.data, row, mujoco.mjtState.mjSTATE_INTEGRATION)
+        batch.state[p] = row
+    ctrl = batch.bind("ctrl")
+    start = time.perf_counter()
+    for t in range(int(lengths.max())):
+        live = np.flatnonzero(lengths > t)
+        ctrl[live] = actions[live, t]
+        batch.step(ids=None if len(live) == members else live, nstep=env.frame_skip)
+    return batch, time.perf_counter() - start
+
+
 @torch.no_grad()
 def time_serial(env_id: str, actor, params, seeds, steps: int) -> dict:
     """The plain way: one env, one offspring after another, a torch forward per step."""
@@ -132,11 +170,13 @@ def run(env_id: str, members: int, steps: int, nthread: int, sweep: bool, repeat
     batched_backend.rollout(params[:2], seeds[:2])  # warm-up (imports, allocator)
     one_batch_backend.rollout(params[:2], seeds[:2])
     lockstep_backend = GymBackend(env_id, policy, max_episode_steps=steps)
+    played = batched_backend.rollout(params, seeds, mirrored)  # the episodes raw_replay steps again
     measures = {
         "batched": lambda: time_backend(batched_backend, params, seeds, mirrored),
         "batched_rows": lambda: time_backend(batched_backend, params, seeds),
         "one_batch": lambda: time_backend(one_batch_backend, params, seeds, mirrored),
         "raw": lambda: time_raw_physics(env_id, members, steps, seeds, nthread),
+        "raw_replay": lambda: time_raw_replay(env_id, played, seeds, nthread),
     }
     if not skip_slow:
         measures["serial"] = lambda: time_serial(env_id, actor, params, seeds, steps)
@@ -181,17 +221,17 @@ def main(argv=None) -> dict:
         "load_average_before": os.getloadavg(),
         "envs": {},
     }
-    header = f"{'env':16s} {'method':18s} {'steps':>8s} {'seconds':>8s} {'steps/s':>9s} {'vs raw':>7s} {'vs serial':>9s}"
+    header = f"{'env':16s} {'method':18s} {'steps':>8s} {'seconds':>8s} {'steps/s':>9s} {'vs raw':>7s} {'vs replay':>9s} {'vs serial':>9s}"
     print(header)
     for env_id in args.envs:
         results = run(env_id, members, steps, args.nthread, args.sweep, args.repeats, args.skip_slow)
-        raw = results["raw"]["steps_per_s"]
+        raw, replay = results["raw"]["steps_per_s"], results["raw_replay"]["steps_per_s"]
         serial = results["serial"]["steps_per_s"] if "serial" in results else float("nan")
         rows = {k: v for k, v in results.items() if k != "sweep"} | {f"sweep:{k}": v for k, v in results.get("sweep", {}).items()}
         for method, r in rows.items():
-            r["vs_raw"], r["vs_serial"] = r["steps_per_s"] / raw, r["steps_per_s"] / serial
+            r["vs_raw"], r["vs_raw_replay"], r["vs_serial"] = r["steps_per_s"] / raw, r["steps_per_s"] / replay, r["steps_per_s"] / serial
             print(f"{env_id:16s} {method:18s} {r['steps']:8d} {r['seconds']:8.2f} {r['steps_per_s']:9.0f} "
-                  f"{r['vs_raw']:7.2f} {r['vs_serial']:9.2f}")
+                  f"{r['vs_raw']:7.2f} {r['vs_raw_replay']:9.2f} {r['vs_serial']:9.2f}")
         report["envs"][env_id] = results
     report["load_average_after"] = os.getloadavg()
     out = Path(args.out)
