@@ -58,20 +58,19 @@ def test_same_episodes_as_gym_backend(env_id, workers):
 
 
 class ScriptedActions:
-    """Stands in for the population actor: plays a fixed action sequence, step after step. Each
-    member's "parameters" are its row of the script (the backend computes only live members)."""
+    """Stands in for the population actor: plays a fixed action sequence, step after step."""
 
     def __init__(self, actions: np.ndarray):
         self.actions = torch.as_tensor(actions)  # [P, T, action_dim]
         self.t = 0
 
     def split(self, params):
-        return params[:, 0].long()
+        return None
 
     def __call__(self, params, observations, layers=None):
-        action = self.actions[layers, self.t]
+        action = self.actions[:, self.t]
         self.t += 1
-        return action
+        return action[: observations.shape[0]]
 
 
 @pytest.mark.parametrize("env_id", ENV_IDS)
@@ -85,7 +84,7 @@ def test_fixed_actions_match_a_raw_gymnasium_loop(env_id):
     seeds = [5, 6, 7]
     # One chunk: one policy call per step.
     backend = MujocoBatchBackend(env_id, ScriptedActions(actions), max_episode_steps=steps, workers=1, chunks_per_worker=1)
-    generation = backend.rollout(torch.arange(members, dtype=torch.float32)[:, None], seeds)
+    generation = backend.rollout(torch.zeros(members, 1), seeds)
     traj_ids = generation.transitions.get(("collector", "traj_ids"))
 
     for p, seed in enumerate(seeds):
@@ -184,40 +183,6 @@ def test_mirrored_forward_gives_the_episodes_of_the_flat_rows(env_id, workers):
         assert np.array_equal(chunk.members, np.concatenate([pairs, members // 2 + pairs]))
     if env_id == "Walker2d-v5":
         assert (reference.lengths < steps).any()
-
-
-@pytest.mark.parametrize("pairs", [True, False], ids=["mirrored", "rows"])
-@pytest.mark.parametrize("env_id", ["Walker2d-v5", "Hopper-v5"])
-def test_finished_members_leave_the_forward_and_no_episode_changes(env_id, pairs, monkeypatch):
-    """Once members finish, the chunk's forward runs on the live members (or the pairs with one)
-    only: every episode is bit for bit the one the forward over the whole chunk plays."""
-    steps, members = 150, 18
-    policy, params = population(env_id, members, sigma=0.3, seed=3)
-    es = OpenES(params[0].clone(), population_size=members, sigma=0.3, generator=torch.Generator().manual_seed(5))
-    params = es.ask()
-    mirrored = es.mirrored(params) if pairs else None
-    seeds = list(range(60, 60 + members))
-    backend = MujocoBatchBackend(env_id, policy, max_episode_steps=steps, nthread=1, workers=1, chunks_per_worker=1)
-    sizes = []
-    forward = PopulationActor.mirrored if pairs else PopulationActor.__call__
-
-    def counted(self, *args):  # how many pairs (or members) each forward computes
-        sizes.append(args[2].shape[1] if pairs else args[1].shape[0])
-        return forward(self, *args)
-
-    monkeypatch.setattr(PopulationActor, forward.__name__, counted)
-    skipping = backend.rollout(params, seeds, mirrored)
-    assert min(sizes) < max(sizes) == (members // 2 if pairs else members)  # the forward shrank as members finished
-
-    from torchrl_esrl.collectors import mujoco_batch
-    for forward_class in (mujoco_batch._PairsForward, mujoco_batch._RowsForward):
-        monkeypatch.setattr(forward_class, "keep", lambda self, live: None)  # the forward over the whole chunk
-    whole = backend.rollout(params, seeds, mirrored)
-    assert len(set(whole.lengths.tolist())) > 2 and (whole.lengths < steps).any()
-    assert torch.equal(skipping.lengths, whole.lengths)
-    assert torch.equal(skipping.returns, whole.returns)
-    for key in KEYS:
-        assert torch.equal(skipping.transitions.get(key), whole.transitions.get(key)), key
 
 
 def test_chunk_counts():

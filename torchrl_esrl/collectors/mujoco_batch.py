@@ -249,12 +249,15 @@ class MujocoBatchBackend:
             "lengths": np.zeros(members, dtype=np.int64),
         }
 
-    def _forward(self, params: torch.Tensor, mirrored: Mirrored | None, chunk: _Chunk) -> "_RowsForward | _PairsForward":
-        """The chunk's forward: its members' observations [n, obs] -> their actions [n, act], run
-        only on the members (or pairs) still live once some have finished."""
+    def _policy(self, params: torch.Tensor, mirrored: Mirrored | None, chunk: _Chunk) -> Callable[[np.ndarray], np.ndarray]:
+        """The chunk's forward: its members' observations [n, obs] -> their actions [n, act]."""
         if chunk.pairs is None:
-            return _RowsForward(self.policy, params[int(chunk.members[0]) : int(chunk.members[-1]) + 1])  # contiguous: a view
-        return _PairsForward(self.policy, mirrored, chunk.pairs)
+            rows = params[int(chunk.members[0]) : int(chunk.members[-1]) + 1]  # contiguous: a view
+            layers = self.policy.split(rows)
+            return lambda observations: self.policy(rows, torch.from_numpy(observations), layers).numpy()
+        center, offsets = self.policy.split_pairs(mirrored, chunk.pairs)
+        pairs = chunk.pairs.stop - chunk.pairs.start
+        return lambda observations: self.policy.mirrored(center, offsets, observations.reshape(2, pairs, -1)).reshape(2 * pairs, -1)
 
     def _reset(self, worker: _Worker, batch: mujoco.batch.Batch, seeds: Sequence[int], first_obs: np.ndarray, x_before: np.ndarray) -> None:
         data = worker.reset_env.unwrapped.data
@@ -281,7 +284,7 @@ class MujocoBatchBackend:
         """One episode per member of ``chunk``, on ``worker``'s batch: the padded arrays of :meth:`rollout`."""
         population, horizon, rules, c = len(chunk.members), self.horizon, self.rules, self.constants
         batch = worker.batch(population, self.threads_per_batch, self.persistent)
-        policy = self._forward(params, mirrored, chunk)
+        policy = self._policy(params, mirrored, chunk)
         nq, nv = self.model.nq, self.model.nv
         state_qpos = batch.bind("qpos")  # live views of the state rows
         state_qvel = batch.bind("qvel")
@@ -304,6 +307,8 @@ class MujocoBatchBackend:
             all_live = len(live) == population
             # Basic slices while every member is live: views instead of fancy-index copies.
             rows = slice(None) if all_live else live
+            # Every member every step: finished ones cost a little wasted forward, and each member's
+            # actions stay those of the reference, whose forward also runs over all members.
             action = policy(obs_traj[:, t])
             if not all_live:
                 action = action[live]
@@ -361,67 +366,5 @@ class MujocoBatchBackend:
                 live = live[~term]
                 if len(live) == 0:
                     break
-                policy.keep(live)
 
         return episodes
-
-
-class _RowsForward:
-    """A chunk's forward over its members' flat rows (:meth:`PopulationActor.__call__`), run from
-    :meth:`keep` on only on the members still live. Every member's arithmetic is its own, so a live
-    member gets bit for bit the actions of the forward over the whole chunk."""
-
-    def __init__(self, policy: PopulationActor, rows: torch.Tensor):
-        self.policy, self.rows = policy, rows
-        self.layers = policy.split(rows)
-        self.members = len(rows)
-        self.kept: np.ndarray | None = None  # None: every member
-
-    def keep(self, live: np.ndarray) -> None:
-        """From now on, compute only the members ``live`` (rows of the chunk): one copy of their
-        parameters when the set shrinks."""
-        if len(live) < (self.members if self.kept is None else len(self.kept)):
-            self.kept = live.copy()
-            self.layers = self.policy.split(self.rows[torch.from_numpy(live)])
-
-    def __call__(self, observations: np.ndarray) -> np.ndarray:
-        """Actions [n, act] for the chunk's observations [n, obs]; rows of finished members are 0."""
-        if self.kept is None:
-            return np.asarray(self.policy(None, torch.from_numpy(observations), self.layers))
-        computed = np.asarray(self.policy(None, torch.from_numpy(observations[self.kept]), self.layers))
-        actions = np.zeros((self.members, computed.shape[1]), dtype=computed.dtype)
-        actions[self.kept] = computed
-        return actions
-
-
-class _PairsForward:
-    """A chunk's forward over its mirrored pairs (:meth:`PopulationActor.mirrored`: member ``k``
-    and member ``K + k`` of the chunk are pair ``k``), run from :meth:`keep` on only on the pairs
-    with a live member. Every pair's products keep their shapes, so a live member gets bit for bit
-    the actions of the forward over all the chunk's pairs, and the finished pairs' offsets are no
-    longer read at every step."""
-
-    def __init__(self, policy: PopulationActor, mirrored: Mirrored, pairs: slice):
-        self.policy = policy
-        self.offsets = mirrored.offsets[pairs]
-        self.center, self.offset_layers = policy.split_pairs(mirrored, pairs)
-        self.pairs = pairs.stop - pairs.start
-        self.kept: np.ndarray | None = None  # None: every pair
-        self.rows: np.ndarray | None = None  # the kept pairs' members
-
-    def keep(self, live: np.ndarray) -> None:
-        """From now on, compute only the pairs with a member in ``live`` (rows of the chunk): one
-        copy of their offsets when the set shrinks."""
-        kept = np.unique(live % self.pairs)
-        if len(kept) < (self.pairs if self.kept is None else len(self.kept)):
-            self.kept, self.rows = kept, np.concatenate([kept, self.pairs + kept])
-            self.offset_layers = self.policy.split(self.offsets[torch.from_numpy(kept)])
-
-    def __call__(self, observations: np.ndarray) -> np.ndarray:
-        """Actions [2K, act] for the chunk's observations [2K, obs]; rows of finished pairs are 0."""
-        if self.kept is None:
-            return self.policy.mirrored(self.center, self.offset_layers, observations.reshape(2, self.pairs, -1)).reshape(2 * self.pairs, -1)
-        computed = self.policy.mirrored(self.center, self.offset_layers, observations[self.rows].reshape(2, len(self.kept), -1))
-        actions = np.zeros((2 * self.pairs, computed.shape[2]), dtype=computed.dtype)
-        actions[self.rows] = computed.reshape(2 * len(self.kept), -1)
-        return actions
