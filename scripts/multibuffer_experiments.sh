@@ -23,7 +23,8 @@
 # before any checkpoint starts over. Every finished run's metrics.csv, summary.json and config.yaml are
 # copied to $RESULTS/<env>/<row>_seed<k>/ (commit them; COMMIT=1 commits each one as it lands), with
 # timing.txt: one line per attempt (exit status, seconds of the command), so a resumed run's wall-clock
-# is the sum of its lines. A recorded run's checkpoints are then deleted (KEEP_CHECKPOINTS=1 keeps
+# is the sum of its lines, and pauses.txt where scripts/pause_runs.sh held the run (its seconds include
+# the held time). A recorded run's checkpoints are then deleted (KEEP_CHECKPOINTS=1 keeps
 # them): a finished run is never continued, and at SET=miniature the 80 runs' checkpoints would
 # need about 60 GB (an ES-TD3Buffers run on Ant keeps two of 2.7 GB).
 #
@@ -103,6 +104,7 @@ run_one() {
   cp "$dir/metrics.csv" "$dir/summary.json" "$dest/"
   cp "$dir/.hydra/config.yaml" "$dest/config.yaml"
   if [ -f "$dir/timing.txt" ]; then cp "$dir/timing.txt" "$dest/"; fi
+  if [ -f "$dir.pauses" ]; then cp "$dir.pauses" "$dest/pauses.txt"; fi  # scripts/pause_runs.sh: held while a benchmark ran
   if [ "$KEEP_CHECKPOINTS" != 1 ]; then rm -rf "$dir/checkpoints"; fi
   if [ "$COMMIT" = 1 ]; then flock "$WORK/.git.lock" sh -c 'git add "$1" && git commit -q -m "results: $2 (experiment=$3)" -- "$1"' _ "$dest" "$env $name" "$PRESET"; fi
 }
