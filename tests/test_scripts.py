@@ -22,10 +22,14 @@ def test_experiment_set_records_a_run_deletes_its_checkpoints_and_skips_it_next_
     work, results = tmp_path / "work", tmp_path / "results"
     tiny = ("iterations=1", "es.population_size=4", "env.max_episode_steps=50", "eval.episodes=1", "eval.final_episodes=1")
     call = lambda: _script("multibuffer_experiments.sh", str(work), "1", *tiny, SET="miniature", RESULTS=str(results), ONLY="^swimmer es es.py 0$")
+    (work / "swimmer").mkdir(parents=True)
+    held = "pause 2026-01-01T00:00:00Z\nresume 2026-01-01T00:05:00Z\n"
+    (work / "swimmer" / "es_seed0.pauses").write_text(held)  # as scripts/pause_runs.sh leaves it
     first = call()
     assert first.returncode == 0, first.stdout + first.stderr
     record = results / "swimmer" / "es_seed0"
-    assert sorted(p.name for p in record.iterdir()) == ["config.yaml", "metrics.csv", "summary.json", "timing.txt"]
+    assert sorted(p.name for p in record.iterdir()) == ["config.yaml", "metrics.csv", "pauses.txt", "summary.json", "timing.txt"]
+    assert (record / "pauses.txt").read_text() == held
     assert json.loads((record / "summary.json").read_text())["env"] == "Swimmer-v5"
     assert (record / "timing.txt").read_text().startswith("swimmer es_seed0: exit 0 after ")
     run_dir = work / "swimmer" / "es_seed0"
