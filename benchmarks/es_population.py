@@ -74,15 +74,22 @@ def time_backend(backend, params, seeds, mirrored=None) -> dict:
             "mean_return": float(generation.returns.mean()), "mean_length": float(generation.lengths.float().mean())}
 
 
-def time_raw_physics(env_id: str, members: int, steps: int, seeds, nthread: int) -> dict:
-    """mujoco.batch stepping alone: gymnasium's initial states, fixed random controls, every member for ``steps``."""
-    env = gym.make(env_id).unwrapped
-    batch = mujoco.batch.Batch(env.model, members, nthread)
+def initial_batch(env, seeds, nthread: int) -> mujoco.batch.Batch:
+    """A mujoco.batch of ``env``'s model, one simulation per seed, each in gymnasium's initial state
+    for that seed."""
+    batch = mujoco.batch.Batch(env.model, len(seeds), nthread)
     row = np.empty(batch.nstate)
     for p, seed in enumerate(seeds):
         env.reset(seed=int(seed))
         mujoco.mj_getState(env.model, env.data, row, mujoco.mjtState.mjSTATE_INTEGRATION)
         batch.state[p] = row
+    return batch
+
+
+def time_raw_physics(env_id: str, members: int, steps: int, seeds, nthread: int) -> dict:
+    """mujoco.batch stepping alone: gymnasium's initial states, fixed random controls, every member for ``steps``."""
+    env = gym.make(env_id).unwrapped
+    batch = initial_batch(env, seeds, nthread)
     rng = np.random.default_rng(0)
     batch.bind("ctrl")[:] = rng.uniform(-0.5, 0.5, (members, env.model.nu))
     start = time.perf_counter()
@@ -110,12 +117,7 @@ def replay(env_id: str, generation, seeds, nthread: int) -> tuple[mujoco.batch.B
     step_of = np.arange(len(member_of)) - np.repeat(np.cumsum(lengths) - lengths, lengths)
     actions = np.zeros((members, int(lengths.max()), env.model.nu))
     actions[member_of, step_of] = generation.transitions.get("action").numpy()
-    batch = mujoco.batch.Batch(env.model, members, nthread)
-    row = np.empty(batch.nstate)
-    for p, seed in enumerate(seeds):
-        env.reset(seed=int(seed))
-        mujoco.mj_getState(env.model, env.data, row, mujoco.mjtState.mjSTATE_INTEGRATION)
-        batch.state[p] = row
+    batch = initial_batch(env, seeds, nthread)
     ctrl = batch.bind("ctrl")
     start = time.perf_counter()
     for t in range(int(lengths.max())):
