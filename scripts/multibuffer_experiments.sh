@@ -22,9 +22,9 @@
 # work_dir is recorded; one killed after a checkpoint continues from it (same hydra.run.dir); one killed
 # before any checkpoint starts over. Every finished run's metrics.csv, summary.json and config.yaml are
 # copied to $RESULTS/<env>/<row>_seed<k>/ (commit them; COMMIT=1 commits each one as it lands), with
-# timing.txt: one line per attempt (exit status, seconds of the command), so a resumed run's wall-clock
-# is the sum of its lines, and pauses.txt where scripts/pause_runs.sh held the run (its seconds include
-# the held time). A recorded run's checkpoints are then deleted (KEEP_CHECKPOINTS=1 keeps
+# timing.txt: one line per attempt (exit status, seconds of the command, the commit it ran on), so a
+# resumed run's wall-clock is the sum of its lines, and pauses.txt where scripts/pause_runs.sh held the
+# run (its seconds include the held time). A recorded run's checkpoints are then deleted (KEEP_CHECKPOINTS=1 keeps
 # them): a finished run is never continued, and at SET=miniature the 80 runs' checkpoints would
 # need about 60 GB (an ES-TD3Buffers run on Ant keeps two of 2.7 GB).
 #
@@ -90,14 +90,14 @@ run_one() {
   if [ ! -f "$dir/summary.json" ]; then
     if [ -d "$dir" ] && [ ! -d "$dir/checkpoints" ]; then rm -rf "$dir"; fi  # killed before any checkpoint: start over
     mkdir -p "$(dirname "$dir")"
-    start=$(date +%s)
+    start=$(date +%s) commit=$(git rev-parse HEAD)
     # shellcheck disable=SC2086  # EXTRA: several overrides, split on purpose
     # TORCHRL_ESRL_JOBS: JOBS runs share the machine, each takes its share of the cores (torchrl_esrl/threads.py)
     TORCHRL_ESRL_JOBS=$JOBS "$PYTHON" "recipes/$recipe" env="$env" experiment="$PRESET" seed="$seed" "$@" $EXTRA \
       logger.progress=false hydra.run.dir="$dir" > "$dir.log" 2>&1
     status=$?
     mkdir -p "$dir"
-    echo "$env $name: exit $status after $(( $(date +%s) - start )) s" | tee -a "$WORK/timings.txt" >> "$dir/timing.txt"
+    echo "$env $name: exit $status after $(( $(date +%s) - start )) s on commit $commit" | tee -a "$WORK/timings.txt" >> "$dir/timing.txt"
   fi
   [ -f "$dir/summary.json" ] || return 1
   mkdir -p "$dest"

@@ -31,7 +31,9 @@ def test_experiment_set_records_a_run_deletes_its_checkpoints_and_skips_it_next_
     assert sorted(p.name for p in record.iterdir()) == ["config.yaml", "metrics.csv", "pauses.txt", "summary.json", "timing.txt"]
     assert (record / "pauses.txt").read_text() == held
     assert json.loads((record / "summary.json").read_text())["env"] == "Swimmer-v5"
-    assert (record / "timing.txt").read_text().startswith("swimmer es_seed0: exit 0 after ")
+    commit = subprocess.run(["git", "rev-parse", "HEAD"], cwd=ROOT, capture_output=True, text=True).stdout.strip()
+    attempt = (record / "timing.txt").read_text()
+    assert attempt.startswith("swimmer es_seed0: exit 0 after ") and attempt.rstrip().endswith(f" s on commit {commit}")
     run_dir = work / "swimmer" / "es_seed0"
     assert (run_dir / "summary.json").exists() and not (run_dir / "checkpoints").exists()
     second = call()
