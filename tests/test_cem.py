@@ -91,6 +91,76 @@ def test_gradient_steps_follow_the_reference_schedule():
     assert torch.equal(population[1], flat_parameters(actor))
 
 
+def test_gradient_steps_are_td3s_own_steps_bit_for_bit_and_take_its_backward_override():
+    """CEM-RL's gradient steps are :meth:`TD3.gradient_step`: with make_td3's fast pieces they give
+    bit for bit the population and critic of the plain sequence (loss, ``loss.backward()``, Adam's
+    ``step()``, the soft update), and a TD3 subclass's ``backward`` (gradient clipping) acts on every step."""
+    import copy
+
+    from torchrl_esrl.collectors.es_collector import ESCollector
+    from torchrl_esrl.data.multibuffer import MultiBuffer
+    from torchrl_esrl.envs import make_env
+    from torchrl_esrl.es.cem import cem_rl_gradient_steps, load_actor_and_target
+    from torchrl_esrl.modules.networks import flat_parameters, make_actor, make_critic
+    from torchrl_esrl.objectives.td3 import TD3, ForeachSoftUpdate, ManualGradTD3Loss
+
+    class ClippedTD3(TD3):
+        calls = 0
+
+        def backward(self, loss, optimizer):
+            super().backward(loss, optimizer)
+            torch.nn.utils.clip_grad_norm_(optimizer.param_groups[0]["params"], 1e-3)
+            ClippedTD3.calls += 1
+
+    env = make_env("swimmer", max_episode_steps=30)
+    fast = {"loss_class": ManualGradTD3Loss, "target_update_class": ForeachSoftUpdate, "optimizer_impl": "fused"}
+
+    def learner(td3_class=TD3):
+        torch.manual_seed(0)
+        return td3_class(make_actor(8, env.action_spec, (16, 16)), make_critic(8, 2, (16, 16)), env.action_spec, **fast)
+
+    td3 = learner()
+    cem = DiagonalCEM(flat_parameters(td3.actor), population_size=4, sigma_init=1e-2, generator=torch.Generator().manual_seed(0))
+    population = cem.ask()
+    generation = ESCollector("swimmer", td3.actor, backend="gym", max_episode_steps=30).evaluate(population)
+    buffer = MultiBuffer(ratio=(0, 0, 1), capacity=1000, batch_size=8, min_size=8)
+    buffer.extend(generation.transitions, "noisy")
+    frames, members, tau = 40, 2, 0.005
+
+    sampled = population.clone()
+    plain, plain_population = learner(), population.clone()
+    torch.manual_seed(1)
+    for member in range(members):  # the plain sequence, step by step
+        load_actor_and_target(plain, plain_population[member])
+        loss = plain.loss
+        for steps, loss_fn, optimizer, target, source in (
+            (frames // members, loss.value_loss, plain.critic_optimizer, loss.target_qvalue_network_params, loss.qvalue_network_params),
+            (frames, loss.actor_loss, plain.actor_optimizer, loss.target_actor_network_params, loss.actor_network_params),
+        ):
+            for _ in range(steps):
+                value, _ = loss_fn(buffer.sample())
+                optimizer.zero_grad(set_to_none=True)
+                value.backward()
+                optimizer.step()
+                with torch.no_grad():
+                    target.data.lerp_(source.data, tau)
+        plain_population[member] = flat_parameters(plain.actor)
+
+    torch.manual_seed(1)
+    cem_rl_gradient_steps(td3, buffer, population, members, frames, tau)
+    assert torch.equal(population, plain_population) and not torch.equal(population[0], cem.mean)
+    for ours, theirs in zip(td3.loss.qvalue_network_params.values(True, True), plain.loss.qvalue_network_params.values(True, True)):
+        assert torch.equal(ours, theirs)
+
+    clipped, clipped_population = learner(ClippedTD3), sampled.clone()
+    torch.manual_seed(1)
+    steps = cem_rl_gradient_steps(clipped, buffer, clipped_population, members, frames, tau)
+    assert ClippedTD3.calls == steps["critic_steps"] + steps["actor_steps"] == members * (frames // members) + members * frames
+    for member in range(members):  # trained, and differently from the unclipped steps
+        assert not torch.equal(clipped_population[member], sampled[member])
+        assert not torch.equal(clipped_population[member], population[member])
+
+
 def test_cem_has_the_ask_tell_interface_and_the_es_phase_runs_it():
     """The ES phase of Algorithm 1 takes any strategy with the ask/tell interface: two CEM
     generations on Swimmer, every transition routed, the mean moved, the generation counted."""

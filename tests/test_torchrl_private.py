@@ -290,7 +290,8 @@ def test_gym_env_of_unwraps_transformed_envs(env):
 
 def test_fused_adam_step_is_optimizer_step():
     """The direct fused-Adam call gives Optimizer.step's parameters and state bit for bit, also
-    after a load_state_dict (which replaces the state tensors) and with weight decay."""
+    after a load_state_dict (which replaces the state tensors), after ``state.clear()`` (a fresh
+    Adam in the same state dict, as CEM-RL gives each member) and with weight decay."""
     import copy
 
     torch.manual_seed(0)
@@ -317,6 +318,14 @@ def test_fused_adam_step_is_optimizer_step():
         for key in ("exp_avg", "exp_avg_sq", "step"):
             assert torch.equal(optimizers[0].state[a][key], optimizers[1].state[b][key])
     assert optimizers[1].state[next(nets[1].parameters())]["step"].item() == 7  # 4, back to 4 on loading, 3 more
+    for optimizer in optimizers:
+        optimizer.state.clear()
+    steps(3)
+    for a, b in zip(nets[0].parameters(), nets[1].parameters()):
+        assert torch.equal(a, b)
+        for key in ("exp_avg", "exp_avg_sq", "step"):
+            assert torch.equal(optimizers[0].state[a][key], optimizers[1].state[b][key])
+    assert optimizers[1].state[next(nets[1].parameters())]["step"].item() == 3  # counted from the clear
 
 
 @pytest.mark.parametrize("env_id", ["HalfCheetah-v5", "Swimmer-v5", "Walker2d-v5", "Hopper-v5", "Ant-v5"])

@@ -229,7 +229,8 @@ def fused_adam_step(optimizer: torch.optim.Adam) -> None:
     own (``state_dict`` and checkpoints unchanged); the lists are rebuilt when the state dict
     object changes (``load_state_dict`` replaces it). Anything but one parameter group of plain
     fused Adam with every gradient present and no step hooks goes through ``optimizer.step()``,
-    which also makes the first step (it creates the state). ``tests/test_torchrl_private.py`` checks parameters
+    which also makes the first step (it creates the state, also after ``optimizer.state.clear()``:
+    the lists are rebuilt when any state tensor is not the one they hold). ``tests/test_torchrl_private.py`` checks parameters
     and state against ``optimizer.step()`` bit for bit, across a ``load_state_dict``.
     """
     group = optimizer.param_groups[0] if len(optimizer.param_groups) == 1 else {}
@@ -244,7 +245,7 @@ def fused_adam_step(optimizer: torch.optim.Adam) -> None:
         optimizer.step()
         return
     cache = optimizer.__dict__.get("_fused_adam_lists")
-    if cache is None or cache[0] is not optimizer.state:
+    if cache is None or cache[0] is not optimizer.state or any(optimizer.state[p]["step"] is not step for p, step in zip(params, cache[3])):
         states = [optimizer.state[p] for p in params]
         cache = optimizer.__dict__["_fused_adam_lists"] = (
             optimizer.state, [s["exp_avg"] for s in states], [s["exp_avg_sq"] for s in states], [s["step"] for s in states]

@@ -125,17 +125,14 @@ def load_actor_and_target(td3, vector: torch.Tensor) -> None:
     td3.actor_optimizer.state.clear()
 
 
-def _gradient_step(name: str, loss_fn, optimizer, target, source, batch, tau: float, member: int) -> float:
-    """One Adam step on ``loss_fn(batch)``, then the soft update of that network's target only."""
-    value, _ = loss_fn(batch)
-    if not torch.isfinite(value):
-        raise FloatingPointError(f"CEM-RL {name} loss is {value.item()} while training member {member}")
-    optimizer.zero_grad(set_to_none=True)
-    value.backward()
-    optimizer.step()
+def _gradient_step(td3, name: str, loss_fn, optimizer, target, source, batch, tau: float, member: int) -> float:
+    """One Adam step on ``loss_fn(batch)`` as TD3 takes its own (:meth:`TD3.gradient_step
+    <torchrl_esrl.objectives.td3.TD3.gradient_step>`: its precision and its ``backward``, where a
+    subclass adds a loss term or clips), then the soft update of that network's target only."""
+    value = td3.gradient_step(loss_fn, batch, optimizer, f"CEM-RL {name} loss while training member {member}")
     with torch.no_grad():
         target.data.lerp_(source.data, tau)
-    return value.item()
+    return value
 
 
 def cem_rl_gradient_steps(td3, buffer, population: torch.Tensor, rl_members: int, frames: int, tau: float) -> dict:
@@ -155,10 +152,10 @@ def cem_rl_gradient_steps(td3, buffer, population: torch.Tensor, rl_members: int
     for member in range(int(rl_members)):
         load_actor_and_target(td3, population[member])
         for _ in range(int(frames) // int(rl_members)):
-            critic_losses.append(_gradient_step(*critic, buffer.sample(), tau, member))
+            critic_losses.append(_gradient_step(td3, *critic, buffer.sample(), tau, member))
             critic_steps += 1
         for _ in range(int(frames)):
-            _gradient_step(*actor, buffer.sample(), tau, member)
+            _gradient_step(td3, *actor, buffer.sample(), tau, member)
             actor_steps += 1
         population[member] = flat_parameters(td3.actor)
     td3.updates += critic_steps

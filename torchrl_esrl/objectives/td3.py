@@ -7,7 +7,6 @@ the policy delay; :func:`torchrl_esrl.algorithm.td3_phase.td3_phase` runs it ins
 from __future__ import annotations
 
 import contextlib
-import math
 
 import torch
 from tensordict import TensorDictBase
@@ -15,6 +14,7 @@ from tensordict.nn import TensorDictSequential
 from torchrl.modules import AdditiveGaussianModule
 from torchrl.objectives import SoftUpdate, TD3Loss
 
+from torchrl_esrl.errors import check_finite
 from torchrl_esrl.objectives.manual_grad import ManualGradTD3Loss, TD3LossQ1Actor, backward
 from torchrl_esrl.torchrl_private import foreach_lerp_, fused_adam_step, soft_update_tensors
 
@@ -155,26 +155,26 @@ class TD3:
 
     def update(self, batch: TensorDictBase) -> dict[str, float]:
         """One TD3 step: critic update; every ``policy_delay`` steps actor and target updates."""
-        self._zero_grad(self.critic_optimizer)
-        with self._loss_context():
-            critic_loss, _ = self.loss.value_loss(batch)
-        self.backward(critic_loss, self.critic_optimizer)
-        out = {"critic_loss": critic_loss.item()}
-        if not math.isfinite(out["critic_loss"]):
-            raise FloatingPointError(f"TD3 critic loss is {out['critic_loss']} at update {self.updates}")
-        self._step(self.critic_optimizer)
+        out = {"critic_loss": self.gradient_step(self.loss.value_loss, batch, self.critic_optimizer, f"TD3 critic loss at update {self.updates}")}
         self.updates += 1
         if self.updates % self.policy_delay == 0:
-            self._zero_grad(self.actor_optimizer)
-            with self._loss_context():
-                actor_loss, _ = self.loss.actor_loss(batch)
-            self.backward(actor_loss, self.actor_optimizer)
-            out["actor_loss"] = actor_loss.item()
-            if not math.isfinite(out["actor_loss"]):
-                raise FloatingPointError(f"TD3 actor loss is {out['actor_loss']} at update {self.updates}")
-            self._step(self.actor_optimizer)
+            out["actor_loss"] = self.gradient_step(self.loss.actor_loss, batch, self.actor_optimizer, f"TD3 actor loss at update {self.updates}")
             self.target_update.step()
         return out
+
+    def gradient_step(self, loss_fn, batch: TensorDictBase, optimizer: torch.optim.Adam, name: str) -> float:
+        """One step of ``optimizer`` (critic or actor Adam) on ``loss_fn(batch)`` (``self.loss.value_loss``
+        or ``actor_loss``): ``zero_grad``, the loss at the run's ``precision``, :meth:`backward`, the
+        step. Returns the loss; raises ``FloatingPointError`` naming ``name`` where it is not finite,
+        before the step. :meth:`update` takes its steps through it, and so do CEM-RL's gradient steps
+        (:func:`torchrl_esrl.es.cem.cem_rl_gradient_steps`): a subclass's :meth:`backward` acts on both."""
+        self._zero_grad(optimizer)
+        with self._loss_context():
+            loss, _ = loss_fn(batch)
+        self.backward(loss, optimizer)
+        value = check_finite(name, loss.item())
+        self._step(optimizer)
+        return value
 
     def backward(self, loss: torch.Tensor, optimizer: torch.optim.Optimizer) -> None:
         """``loss.backward()`` before ``optimizer`` (critic or actor Adam) steps: the place for a
