@@ -7,6 +7,8 @@
 # that spans commits (scripts/paper_run.sh) records this as its arithmetic.txt.
 #
 # Usage: scripts/tiny_digest.sh <recipe.py> <commit>...      e.g. scripts/tiny_digest.sh es_td3.py c08b91b fd992fb
+#   OVERRIDES="<hydra overrides>" are added to each run, e.g. OVERRIDES=cem.start_frames=0 for CEM-RL,
+#   whose tiny preset stops before its first gradient step;
 #   WORK=<dir> keeps the worktrees and runs there (default: a temporary directory, removed with its
 #   worktrees at the end); PYTHON=python
 set -u
@@ -20,7 +22,8 @@ fi
 for commit in "$@"; do
   tree=$WORK/tree-$commit
   [ -d "$tree" ] || git -C "$repo" worktree add -f --detach "$tree" "$commit" > /dev/null 2>&1 || { echo "$commit: no such commit" >&2; exit 2; }
-  (cd "$tree" && PYTHONPATH=$tree "$PYTHON" "recipes/$recipe" experiment=tiny hydra.run.dir="$WORK/run-$commit" > "$WORK/run-$commit.log" 2>&1) \
+  # shellcheck disable=SC2086  # OVERRIDES: several, split on purpose
+  (cd "$tree" && PYTHONPATH=$tree "$PYTHON" "recipes/$recipe" experiment=tiny ${OVERRIDES:-} hydra.run.dir="$WORK/run-$commit" > "$WORK/run-$commit.log" 2>&1) \
     || { echo "$commit: the run failed, see $WORK/run-$commit.log" >&2; exit 1; }
   "$PYTHON" - "$commit" "$WORK/run-$commit/metrics.csv" <<'PY'
 import csv, hashlib, sys
