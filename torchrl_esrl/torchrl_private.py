@@ -225,13 +225,13 @@ def fused_adam_step(optimizer: torch.optim.Adam) -> None:
     runs (``torch._fused_adam_``) after the same step-count increment (``torch._foreach_add_``).
 
     ``Optimizer.step`` runs Python around that kernel (hooks, state lookups, option checks) on
-    every call (docs/performance.md, "adam"). The state tensors are torch's
-    own (``state_dict`` and checkpoints unchanged); the lists are rebuilt when the state dict
-    object changes (``load_state_dict`` replaces it). Anything but one parameter group of plain
-    fused Adam with every gradient present and no step hooks goes through ``optimizer.step()``,
-    which also makes the first step (it creates the state, also after ``optimizer.state.clear()``:
-    the lists are rebuilt when any state tensor is not the one they hold). ``tests/test_torchrl_private.py`` checks parameters
-    and state against ``optimizer.step()`` bit for bit, across a ``load_state_dict``.
+    every call (docs/performance.md, "adam"). The state tensors are torch's own (``state_dict``
+    and checkpoints unchanged); the lists of them are rebuilt whenever the parameters' step
+    tensors are not the ones they hold (``load_state_dict`` and ``state.clear()`` replace them).
+    Anything but one parameter group of plain fused Adam with every gradient present and no step
+    hooks goes through ``optimizer.step()``, which also makes the first step (it creates the
+    state). ``tests/test_torchrl_private.py`` checks parameters and state against
+    ``optimizer.step()`` bit for bit, across a ``load_state_dict`` and a ``state.clear()``.
     """
     group = optimizer.param_groups[0] if len(optimizer.param_groups) == 1 else {}
     params = group.get("params", ())
@@ -244,13 +244,12 @@ def fused_adam_step(optimizer: torch.optim.Adam) -> None:
     if not direct:
         optimizer.step()
         return
+    steps = [optimizer.state[p]["step"] for p in params]
     cache = optimizer.__dict__.get("_fused_adam_lists")
-    if cache is None or cache[0] is not optimizer.state or any(optimizer.state[p]["step"] is not step for p, step in zip(params, cache[3])):
+    if cache is None or len(cache[2]) != len(steps) or any(held is not step for held, step in zip(cache[2], steps)):
         states = [optimizer.state[p] for p in params]
-        cache = optimizer.__dict__["_fused_adam_lists"] = (
-            optimizer.state, [s["exp_avg"] for s in states], [s["exp_avg_sq"] for s in states], [s["step"] for s in states]
-        )
-    _, exp_avgs, exp_avg_sqs, steps = cache
+        cache = optimizer.__dict__["_fused_adam_lists"] = ([s["exp_avg"] for s in states], [s["exp_avg_sq"] for s in states], steps)
+    exp_avgs, exp_avg_sqs, steps = cache
     beta1, beta2 = group["betas"]
     torch._foreach_add_(steps, 1)
     torch._fused_adam_(
