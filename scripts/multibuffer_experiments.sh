@@ -24,9 +24,9 @@
 # copied to $RESULTS/<env>/<row>_seed<k>/ (commit them; COMMIT=1 commits each one as it lands), with
 # timing.txt: one line per attempt (exit status, seconds of the command, the commit it ran on), so a
 # resumed run's wall-clock is the sum of its lines, and pauses.txt where scripts/pause_runs.sh held the
-# run (its seconds include the held time). A recorded run's checkpoints are then deleted (KEEP_CHECKPOINTS=1 keeps
-# them): a finished run is never continued, and at SET=miniature the 80 runs' checkpoints would
-# need about 60 GB (an ES-TD3Buffers run on Ant keeps two of 2.7 GB).
+# run (its seconds include the held time). A recorded run's checkpoints are then deleted
+# (KEEP_CHECKPOINTS=1 keeps them): a finished run is never continued, and at SET=miniature the 80
+# runs' checkpoints would need about 60 GB (an ES-TD3Buffers run on Ant keeps two of 2.7 GB).
 #
 # Usage: scripts/multibuffer_experiments.sh [work_dir] [parallel_jobs] [extra hydra overrides...]
 #   SET=multibuffer  RESULTS=docs/results/runs/$SET  PYTHON=python  COMMIT=0  KEEP_CHECKPOINTS=0   (environment, defaults shown)
