@@ -659,6 +659,7 @@ def test_a_second_run_in_a_directory_being_written_is_refused_and_a_killed_write
     first = start(tmp_path)
     try:
         wait_for(lambda: "checkpoint-000000000100" in checkpoints(tmp_path), first)
+        os.killpg(first.pid, signal.SIGSTOP)  # held mid-run, lock and all, however slow the second is to start
         hydra_files = tree(tmp_path / ".hydra")
         second = run(tmp_path)
         line = one_line(second)
@@ -666,7 +667,7 @@ def test_a_second_run_in_a_directory_being_written_is_refused_and_a_killed_write
         assert "since " in line and "allowed" in line and not second.stdout.strip()
         assert tree(tmp_path / ".hydra") == hydra_files  # Hydra's files are the first run's
     finally:
-        first.send_signal(signal.SIGKILL)  # a writer that dies without a word (kill -9, a lost node)
+        os.killpg(first.pid, signal.SIGKILL)  # a writer that dies without a word (kill -9, a lost node)
         first.wait()
     result = run(tmp_path)  # the kernel released the dead writer's lock: the rerun resumes
     assert result.returncode == 0, result.stderr[-3000:]
