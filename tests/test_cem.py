@@ -94,7 +94,8 @@ def test_gradient_steps_follow_the_reference_schedule():
 def test_gradient_steps_are_td3s_own_steps_bit_for_bit_and_take_its_backward_override():
     """CEM-RL's gradient steps are :meth:`TD3.gradient_step`: with make_td3's fast pieces they give
     bit for bit the population and critic of the plain sequence (loss, ``loss.backward()``, Adam's
-    ``step()``, the soft update), and a TD3 subclass's ``backward`` (gradient clipping) acts on every step."""
+    ``step()``, the soft update), and a TD3 subclass's ``backward`` (gradient clipping) acts on every step,
+    run on ``td3.num_threads`` threads."""
     import copy
 
     from torchrl_esrl.collectors.es_collector import ESCollector
@@ -106,11 +107,13 @@ def test_gradient_steps_are_td3s_own_steps_bit_for_bit_and_take_its_backward_ove
 
     class ClippedTD3(TD3):
         calls = 0
+        threads = set()
 
         def backward(self, loss, optimizer):
             super().backward(loss, optimizer)
             torch.nn.utils.clip_grad_norm_(optimizer.param_groups[0]["params"], 1e-3)
             ClippedTD3.calls += 1
+            ClippedTD3.threads.add(torch.get_num_threads())
 
     env = make_env("swimmer", max_episode_steps=30)
     fast = {"loss_class": ManualGradTD3Loss, "target_update_class": ForeachSoftUpdate, "optimizer_impl": "fused"}
@@ -153,9 +156,16 @@ def test_gradient_steps_are_td3s_own_steps_bit_for_bit_and_take_its_backward_ove
         assert torch.equal(ours, theirs)
 
     clipped, clipped_population = learner(ClippedTD3), sampled.clone()
+    clipped.num_threads, caller_threads = 1, torch.get_num_threads()  # a job's share of the cores, as td3.num_threads sets it
+    torch.set_num_threads(3)
     torch.manual_seed(1)
-    steps = cem_rl_gradient_steps(clipped, buffer, clipped_population, members, frames, tau)
+    try:
+        steps = cem_rl_gradient_steps(clipped, buffer, clipped_population, members, frames, tau)
+        assert torch.get_num_threads() == 3  # the caller's count, restored
+    finally:
+        torch.set_num_threads(caller_threads)
     assert ClippedTD3.calls == steps["critic_steps"] + steps["actor_steps"] == members * (frames // members) + members * frames
+    assert ClippedTD3.threads == {1}  # every step on TD3's thread count, as its own phase runs
     for member in range(members):  # trained, and differently from the unclipped steps
         assert not torch.equal(clipped_population[member], sampled[member])
         assert not torch.equal(clipped_population[member], population[member])

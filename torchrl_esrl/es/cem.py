@@ -14,7 +14,8 @@ diagonal covariance (``sepCEM``): sample ``z_i = mu + sqrt(var) * eps_i`` (antit
 
 :func:`cem_rl_gradient_steps` is the RL half of one generation: for each of the first
 ``rl_members`` members, load it into the TD3 actor (and its target) with a fresh Adam, run
-``F // rl_members`` critic steps, then ``F`` actor steps, F = frames of the previous generation.
+``F // rl_members`` critic steps, then ``F`` actor steps, F = frames of the previous generation,
+on ``td3.num_threads`` torch threads as TD3's own phase.
 """
 from __future__ import annotations
 
@@ -22,6 +23,7 @@ import torch
 
 from torchrl_esrl.es.strategy import checked_returns
 from torchrl_esrl.modules.networks import Mirrored, flat_parameters, load_flat_parameters
+from torchrl_esrl.threads import torch_threads
 
 
 def elite_weights(num_elites: int) -> torch.Tensor:
@@ -143,20 +145,24 @@ def cem_rl_gradient_steps(td3, buffer, population: torch.Tensor, rl_members: int
     critic loss with target smoothing, critic target soft-updated), then ``frames`` actor steps
     (``-Q1(s, pi(s))``, actor target soft-updated); write the actor back into the population.
     The critic and its Adam are shared across members and generations. ``frames`` is F, the
-    number of frames the previous generation played. Returns the step counts and critic losses.
+    number of frames the previous generation played. The steps run on ``td3.num_threads`` torch
+    threads (default: this job's share of the cores, torchrl_esrl/threads.py), as
+    :func:`~torchrl_esrl.algorithm.td3_phase.td3_phase` runs TD3's. Returns the step counts and
+    critic losses.
     """
     loss = td3.loss
     critic = ("critic", loss.value_loss, td3.critic_optimizer, loss.target_qvalue_network_params, loss.qvalue_network_params)
     actor = ("actor", loss.actor_loss, td3.actor_optimizer, loss.target_actor_network_params, loss.actor_network_params)
     critic_steps, actor_steps, critic_losses = 0, 0, []
-    for member in range(int(rl_members)):
-        load_actor_and_target(td3, population[member])
-        for _ in range(int(frames) // int(rl_members)):
-            critic_losses.append(_gradient_step(td3, *critic, buffer.sample(), tau, member))
-            critic_steps += 1
-        for _ in range(int(frames)):
-            _gradient_step(td3, *actor, buffer.sample(), tau, member)
-            actor_steps += 1
-        population[member] = flat_parameters(td3.actor)
+    with torch_threads(td3.num_threads):
+        for member in range(int(rl_members)):
+            load_actor_and_target(td3, population[member])
+            for _ in range(int(frames) // int(rl_members)):
+                critic_losses.append(_gradient_step(td3, *critic, buffer.sample(), tau, member))
+                critic_steps += 1
+            for _ in range(int(frames)):
+                _gradient_step(td3, *actor, buffer.sample(), tau, member)
+                actor_steps += 1
+            population[member] = flat_parameters(td3.actor)
     td3.updates += critic_steps
     return {"critic_steps": critic_steps, "actor_steps": actor_steps, "critic_losses": critic_losses}
