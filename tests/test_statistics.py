@@ -307,6 +307,28 @@ def test_overwrite_table_finds_runs_the_buffers_could_not_reach_and_the_summary_
     assert any(d.startswith("ES-TD3Buffers 0.5:0.2:0.3 > TD3") and "never" not in d for d in differences)
 
 
+def test_returned_policies_are_named_from_the_recipes_grouped_by_policy_in_row_order():
+    assert ALGORITHMS.returned_text(["cem_rl", "td3", "es", "es_td3_buffers/td3_actor", "es_td3_buffers"]) == (
+        "ES mean: ES-TD3Buffers, OpenAI-ES; TD3 actor: TD3; CEM mean: CEM-RL")
+    assert ALGORITHMS.returned_text(["unknown"]) == "returned policy: unknown"
+
+
+CEM_RL_BUFFERS = ROOT / "docs" / "results" / "runs" / "cem_rl_buffers"
+
+
+@pytest.mark.skipif(not any(CEM_RL_BUFFERS.rglob("summary.json")), reason="no recorded CEM-RL run in this checkout")
+def test_a_report_of_cem_rl_rows_speaks_of_what_they_return_and_spend(tmp_path):
+    """Footnotes come from the rows' recipes: CEM-RL rows return the CEM mean, spend no ES frames
+    and overwrite nothing, so neither the ES-TD3 wording nor the overwrite count appears."""
+    from torchrl_esrl.report import make_report
+
+    algorithms = Algorithms(discover(ROOT / "recipes"), reference="cem_rl_buffers", normalise_by="cem_rl")
+    written = make_report([CEM_RL_BUFFERS], tmp_path, algorithms)
+    summary, results = written["summary_md"].read_text(), written["table_md"].read_text()
+    assert "(CEM mean: CEM-RL, CEM-RL (return-routed buffers))" in summary and "overwritten" not in summary and "ES mean" not in summary
+    assert "returns (CEM mean: CEM-RL, CEM-RL (return-routed buffers))." in results and "spend both" not in results
+
+
 def test_overview_cells_without_a_record_hold_no_number(tmp_path):
     runs = [run_record("Walker2d-v5", "es_td3_buffers", 0, 6639.1)]
     runs[0]["summary"].update(experiment="paper", td3_frames=2_000_000, es_frames=109_803_211)

@@ -54,6 +54,15 @@ class Algorithms:
         info = self.info(algorithm)
         return (ratio not in ("", PAPER_RATIO), info.rank, info.label, ratio, algorithm)
 
+    def returned_text(self, algorithms) -> str:
+        """What each of ``algorithms`` returns, from their infos, grouped by policy in row order:
+        ``"ES mean: ES-TD3Buffers, OpenAI-ES; TD3 actor: TD3"``. TD3-actor rows are their row's."""
+        by_policy: dict[str, list[str]] = {}
+        for algorithm in sorted({a.partition(TD3_ACTOR_SUFFIX)[0] for a in algorithms}, key=lambda a: self.row_order((a, ""))):
+            info = self.info(algorithm)
+            by_policy.setdefault(info.returned, []).append(info.label)
+        return "; ".join(f"{policy}: {', '.join(labels)}" for policy, labels in by_policy.items())
+
     def reference_row(self, keys) -> tuple[str, str] | None:
         """The (algorithm, ratio) of ``reference`` among ``keys``: at the paper's ratio or none."""
         return next((key for key in keys if key[0] == self.reference and key[1] in ("", PAPER_RATIO)), None)

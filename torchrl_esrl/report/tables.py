@@ -74,12 +74,14 @@ def write_table(rows: list[dict], out_dir: Path, algorithms: Algorithms) -> tupl
     for r in rows:
         ci = ci_text(r["iqm_ci_low"], r["iqm_ci_high"], 1)
         lines.append(f"| {r['env']} | {algorithms.label(r['algorithm'], r['ratio'])} | {r['runs']} | {r['td3_frames']} | {r['es_frames']} | {r['mean']:.1f} | {number_text(r['std'], 1)} | {r['median']:.1f} | {r['iqm']:.1f} {ci} |")
+    actor_rows = any(r["algorithm"].endswith(TD3_ACTOR_SUFFIX) for r in rows)
+    both = sorted({r["algorithm"] for r in rows if r["td3_frames"] and r["es_frames"] and not r["algorithm"].endswith(TD3_ACTOR_SUFFIX)}, key=lambda a: algorithms.row_order((a, "")))
     lines += [
         "",
-        "Final return: deterministic evaluation of the policy each algorithm returns (ES-TD3: the ES mean;",
-        "its TD3 actor on the `: its TD3 actor` rows). TD3 frames (gradient-based learner's environment",
-        "steps) and ES frames (evolution's evaluation episodes) are counted separately: ES-TD3 variants",
-        "spend both, so at equal TD3 frames they have used many more environment frames in total.",
+        f"Final return: deterministic evaluation of the policy each algorithm returns ({algorithms.returned_text(r['algorithm'] for r in rows)}"
+        + ("; its TD3 actor on the `: its TD3 actor` rows" if actor_rows else "") + "). TD3 frames (gradient-based learner's environment",
+        "steps) and ES frames (evolution's evaluation episodes) are counted separately"
+        + (f": {', '.join(algorithms.label(a) for a in both)} spend both, so at equal TD3 frames they have used many more environment frames in total." if both else "."),
         f"IQM CI: 95% percentile bootstrap over the row's runs ({_methods(r['runs'] for r in rows)}).",
     ]
     md_path.write_text("\n".join(lines) + "\n")
