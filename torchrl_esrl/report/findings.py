@@ -141,7 +141,8 @@ def summary_table(runs: list[dict], results: list[dict], pairwise: list[dict], o
             if (env, *key) in counts:
                 cell += f"; overwritten in {counts[(env, *key)]['overwritten_runs']}/{counts[(env, *key)]['runs']}"
             cells[key] = cell
-        rows.append({"env": env, "cells": cells, "pairs": len(tested), "differences": called_text, "runs": {key: by_key[(env, *key)]["runs"] for key in cells}})
+        rows.append({"env": env, "cells": cells, "pairs": len(tested), "differences": called_text, "runs": {key: by_key[(env, *key)]["runs"] for key in cells},
+                     "overwrites_counted": any((env, *key) in counts for key in cells)})
     return rows
 
 
@@ -153,11 +154,10 @@ def write_summary_table(rows: list[dict], out_dir: Path, algorithms: Algorithms)
         lines.append(f"| {r['env']} | " + " | ".join(r["cells"].get(key, "not run") for key in keys) + f" | {r['differences']} |")
     runs = sorted({n for r in rows for n in r["runs"].values()})
     families = ", ".join(f"{r['env']}: {r['pairs']}" for r in rows)
-    overwritten = any("overwritten in" in cell for r in rows for cell in r["cells"].values())
     lines += [
         "",
         f"Final return of the returned policy ({algorithms.returned_text(key[0] for key in keys)}), IQM over {' or '.join(map(str, runs))} runs with its 95% bootstrap CI"
-        " (results.md; a row of one run: its final return)" + ("; overwritten in k/n: runs whose ES mean the TD3 actor replaced at least once (overwrites.md)" if overwritten else "") + ". Differences:",
+        " (results.md; a row of one run: its final return)" + ("; overwritten in k/n: runs whose ES mean the TD3 actor replaced at least once (overwrites.md)" if any(r["overwrites_counted"] for r in rows) else "") + ". Differences:",
         f"two-sided permutation test of the means with Holm's correction across the task's tested pairs ({families}; pairwise.md).",
         "No difference called means none shown, not that the rows are equal.",
     ]
