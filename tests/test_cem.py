@@ -152,8 +152,9 @@ def test_gradient_steps_are_td3s_own_steps_bit_for_bit_and_take_its_backward_ove
     torch.manual_seed(1)
     cem_rl_gradient_steps(td3, buffer, population, members, frames, tau)
     assert torch.equal(population, plain_population) and not torch.equal(population[0], cem.mean)
-    for ours, theirs in zip(td3.loss.qvalue_network_params.values(True, True), plain.loss.qvalue_network_params.values(True, True)):
-        assert torch.equal(ours, theirs)
+    for name in ("qvalue_network_params", "target_qvalue_network_params", "target_actor_network_params"):  # the critics and both targets
+        ours, theirs = getattr(td3.loss, name), getattr(plain.loss, name)
+        assert all(torch.equal(ours.get(key), theirs.get(key)) for key in theirs.keys(True, True)), name
 
     clipped, clipped_population = learner(ClippedTD3), sampled.clone()
     clipped.num_threads, caller_threads = 1, torch.get_num_threads()  # a job's share of the cores, as td3.num_threads sets it

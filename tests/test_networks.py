@@ -32,6 +32,25 @@ def test_flat_parameters_round_trip_excludes_buffers():
     assert torch.equal(flat_parameters(actor), torch.arange(vector.numel(), dtype=torch.float32))
 
 
+def test_loading_flat_parameters_copies_into_the_parameters_own_storage():
+    """The actor and the vector share nothing afterwards: writing to one leaves the other as it was,
+    and the parameters (and tensors that hold them, as an optimiser or a foreach list) stay the same."""
+    actor = make_actor(5, make_env("pendulum").action_spec, hidden=(8, 8))
+    parameters = list(actor.parameters())
+    storage = [p.data.data_ptr() for p in parameters]
+    vector = torch.randn(sum(p.numel() for p in parameters))
+    load_flat_parameters(actor, vector)
+    assert [p.data.data_ptr() for p in actor.parameters()] == storage and torch.equal(flat_parameters(actor), vector)
+    loaded = vector.clone()
+    vector.zero_()  # the vector reused, as a population row is
+    assert torch.equal(flat_parameters(actor), loaded)
+    with torch.no_grad():
+        parameters[0].add_(1.0)  # the actor trained
+    assert torch.equal(vector, torch.zeros_like(vector))
+    with pytest.raises(ValueError, match="a flat vector of 3 values for an actor of"):
+        load_flat_parameters(actor, torch.zeros(3))
+
+
 def _batched_equals_each_member(actor, members: int) -> torch.Tensor:
     """PopulationActor's actions for ``members`` perturbed actors, checked against each one loaded
     into the actor module; returns them."""

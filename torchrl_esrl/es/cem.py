@@ -24,6 +24,7 @@ import torch
 from torchrl_esrl.es.strategy import checked_returns
 from torchrl_esrl.modules.networks import Mirrored, flat_parameters, load_flat_parameters
 from torchrl_esrl.threads import torch_threads
+from torchrl_esrl.torchrl_private import foreach_lerp_
 
 
 def elite_weights(num_elites: int) -> torch.Tensor:
@@ -127,13 +128,21 @@ def load_actor_and_target(td3, vector: torch.Tensor) -> None:
     td3.actor_optimizer.state.clear()
 
 
-def _gradient_step(td3, name: str, loss_fn, optimizer, target, source, batch, tau: float, member: int) -> float:
+def _lerp_pairs(target, source) -> tuple[list, list]:
+    """The tensors of ``target`` and ``source`` (the loss's parameter TensorDicts) paired by key, for
+    one ``torch._foreach_lerp_`` a step: what ``target.data.lerp_(source.data, tau)`` computes, without
+    flattening both TensorDicts again every step. The loss keeps its parameters in place
+    (:func:`load_flat_parameters` copies into them)."""
+    keys = list(source.keys(True, True))
+    return [target.get(key).data for key in keys], [source.get(key).data for key in keys]
+
+
+def _gradient_step(td3, name: str, loss_fn, optimizer, targets: list, sources: list, batch, tau: float, member: int) -> float:
     """One Adam step on ``loss_fn(batch)`` as TD3 takes its own (:meth:`TD3.gradient_step
     <torchrl_esrl.objectives.td3.TD3.gradient_step>`: its precision and its ``backward``, where a
     subclass adds a loss term or clips), then the soft update of that network's target only."""
     value = td3.gradient_step(loss_fn, batch, optimizer, f"CEM-RL {name} loss while training member {member}")
-    with torch.no_grad():
-        target.data.lerp_(source.data, tau)
+    foreach_lerp_(targets, sources, tau)
     return value
 
 
@@ -151,8 +160,8 @@ def cem_rl_gradient_steps(td3, buffer, population: torch.Tensor, rl_members: int
     critic losses.
     """
     loss = td3.loss
-    critic = ("critic", loss.value_loss, td3.critic_optimizer, loss.target_qvalue_network_params, loss.qvalue_network_params)
-    actor = ("actor", loss.actor_loss, td3.actor_optimizer, loss.target_actor_network_params, loss.actor_network_params)
+    critic = ("critic", loss.value_loss, td3.critic_optimizer, *_lerp_pairs(loss.target_qvalue_network_params, loss.qvalue_network_params))
+    actor = ("actor", loss.actor_loss, td3.actor_optimizer, *_lerp_pairs(loss.target_actor_network_params, loss.actor_network_params))
     critic_steps, actor_steps, critic_losses = 0, 0, []
     with torch_threads(td3.num_threads):
         for member in range(int(rl_members)):
