@@ -131,8 +131,8 @@ def load_actor_and_target(td3, vector: torch.Tensor) -> None:
 def _lerp_pairs(target, source) -> tuple[list, list]:
     """The tensors of ``target`` and ``source`` (the loss's parameter TensorDicts) paired by key, for
     one ``torch._foreach_lerp_`` a step: what ``target.data.lerp_(source.data, tau)`` computes, without
-    flattening both TensorDicts again every step. The loss keeps its parameters in place
-    (:func:`load_flat_parameters` copies into them)."""
+    flattening both TensorDicts again every step. Valid until a parameter's ``.data`` is rebound, as
+    :func:`~torchrl_esrl.modules.networks.load_flat_parameters` does."""
     keys = list(source.keys(True, True))
     return [target.get(key).data for key in keys], [source.get(key).data for key in keys]
 
@@ -160,12 +160,12 @@ def cem_rl_gradient_steps(td3, buffer, population: torch.Tensor, rl_members: int
     critic losses.
     """
     loss = td3.loss
-    critic = ("critic", loss.value_loss, td3.critic_optimizer, *_lerp_pairs(loss.target_qvalue_network_params, loss.qvalue_network_params))
-    actor = ("actor", loss.actor_loss, td3.actor_optimizer, *_lerp_pairs(loss.target_actor_network_params, loss.actor_network_params))
     critic_steps, actor_steps, critic_losses = 0, 0, []
     with torch_threads(td3.num_threads):
         for member in range(int(rl_members)):
-            load_actor_and_target(td3, population[member])
+            load_actor_and_target(td3, population[member])  # rebinds the actor's parameters: pair them after it
+            critic = ("critic", loss.value_loss, td3.critic_optimizer, *_lerp_pairs(loss.target_qvalue_network_params, loss.qvalue_network_params))
+            actor = ("actor", loss.actor_loss, td3.actor_optimizer, *_lerp_pairs(loss.target_actor_network_params, loss.actor_network_params))
             for _ in range(int(frames) // int(rl_members)):
                 critic_losses.append(_gradient_step(td3, *critic, buffer.sample(), tau, member))
                 critic_steps += 1

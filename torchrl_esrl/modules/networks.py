@@ -21,7 +21,7 @@ from tensordict.nn import TensorDictModule, TensorDictSequential
 from tensordict import TensorDict
 from torch import nn
 from torch.func import functional_call
-from torch.nn.utils import parameters_to_vector
+from torch.nn.utils import parameters_to_vector, vector_to_parameters
 from torchrl.data import TensorSpec
 from torchrl.modules import MLP, TanhModule, ValueOperator
 
@@ -89,19 +89,15 @@ def flat_parameters(actor: nn.Module) -> torch.Tensor:
 
 
 @torch.no_grad()
-@torch.no_grad()
 def load_flat_parameters(actor: nn.Module, vector: torch.Tensor) -> None:
-    """Copy ``vector`` into the actor's parameters, in place: the parameters keep their own storage
-    (optimiser references and anything holding their tensors stay valid) and share none with
-    ``vector``. ``torch.nn.utils.vector_to_parameters`` would instead rebind each ``.data`` to a
-    view of ``vector``, so that a later write to either changes the other."""
-    parameters = list(actor.parameters())
-    if vector.numel() != sum(p.numel() for p in parameters):
-        raise ValueError(f"a flat vector of {vector.numel()} values for an actor of {sum(p.numel() for p in parameters)} parameters")
-    offset = 0
-    for parameter in parameters:
-        parameter.copy_(vector[offset : offset + parameter.numel()].view_as(parameter))
-        offset += parameter.numel()
+    """Load ``vector`` into the actor's parameters (``torch.nn.utils.vector_to_parameters``): each
+    parameter object stays (optimiser references stay valid), its ``.data`` becomes a view of
+    ``vector`` (of a copy where the dtype or device differ). The two share storage from then on: a
+    write to either changes the other, so pass ``vector.clone()`` where the vector will be reused.
+    The views are what :class:`ModulePopulation` evaluates, bit for bit: a copy into storage of the
+    parameters' own can round differently, as products may take another path on other alignments."""
+    reference = next(actor.parameters())
+    vector_to_parameters(vector.to(device=reference.device, dtype=reference.dtype), actor.parameters())
 
 
 @dataclass(frozen=True)
