@@ -20,11 +20,12 @@
 #
 # Resumes from what exists: a run whose record is already in $RESULTS is skipped; one that finished in
 # work_dir is recorded; one killed after a checkpoint continues from it (same hydra.run.dir); one killed
-# before any checkpoint starts over. Every finished run's metrics.csv, summary.json and config.yaml are
-# copied to $RESULTS/<env>/<row>_seed<k>/ (commit them; COMMIT=1 commits each one as it lands), with
-# timing.txt: one line per attempt (exit status, seconds of the command, the commit it ran on), so a
-# resumed run's wall-clock is the sum of its lines, and pauses.txt where scripts/pause_runs.sh held the
-# run (its seconds include the held time). A recorded run's checkpoints are then deleted
+# before any checkpoint was complete starts over. Every finished run's metrics.csv, summary.json and
+# config.yaml are copied to $RESULTS/<env>/<row>_seed<k>/ (commit them; COMMIT=1 commits each one as it
+# lands), with timing.txt: one line per attempt (exit status, seconds of the command, the commit it ran
+# on; a started-over run's earlier attempts first, marked "(started over)"), so a resumed run's
+# wall-clock is the sum of its unmarked lines, and pauses.txt where scripts/pause_runs.sh held the run
+# (its seconds include the held time). A recorded run's checkpoints are then deleted
 # (KEEP_CHECKPOINTS=1 keeps them): a finished run is never continued, and at SET=miniature the 80
 # runs' checkpoints would need about 60 GB (an ES-TD3Buffers run on Ant keeps two of 2.7 GB).
 #
@@ -88,7 +89,11 @@ run_one() {
   dir=$WORK/$env/$name
   if [ -f "$dest/summary.json" ]; then echo "$env $name: recorded, skipped"; return 0; fi
   if [ ! -f "$dir/summary.json" ]; then
-    if [ -d "$dir" ] && [ ! -d "$dir/checkpoints" ]; then rm -rf "$dir"; fi  # killed before any checkpoint: start over
+    earlier=
+    if [ -d "$dir" ] && ! compgen -G "$dir/checkpoints/checkpoint-*" > /dev/null; then  # killed before any checkpoint: start over
+      earlier=$(cat "$dir/timing.txt" 2> /dev/null)  # (its first iteration's row may be in metrics.csv: the recipe refuses to continue that)
+      rm -rf "$dir"
+    fi
     mkdir -p "$(dirname "$dir")"
     start=$(date +%s) commit=$(git rev-parse HEAD)
     # shellcheck disable=SC2086  # EXTRA: several overrides, split on purpose
@@ -97,6 +102,7 @@ run_one() {
       logger.progress=false hydra.run.dir="$dir" > "$dir.log" 2>&1
     status=$?
     mkdir -p "$dir"
+    if [ -n "$earlier" ]; then printf '%s\n' "$earlier" | sed '/(started over)$/!s/$/ (started over)/' >> "$dir/timing.txt"; fi
     echo "$env $name: exit $status after $(( $(date +%s) - start )) s on commit $commit" | tee -a "$WORK/timings.txt" >> "$dir/timing.txt"
   fi
   [ -f "$dir/summary.json" ] || return 1

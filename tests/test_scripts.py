@@ -18,13 +18,17 @@ def _script(name: str, *args: str, **environment: str) -> subprocess.CompletedPr
     return subprocess.run(["bash", str(ROOT / "scripts" / name), *args], cwd=ROOT, capture_output=True, text=True, timeout=900, env=env)
 
 
-def test_experiment_set_records_a_run_deletes_its_checkpoints_and_skips_it_next_time(tmp_path):
+def test_experiment_set_starts_over_a_run_without_a_checkpoint_records_it_deletes_its_checkpoints_and_skips_it_next_time(tmp_path):
     work, results = tmp_path / "work", tmp_path / "results"
     tiny = ("iterations=1", "es.population_size=4", "env.max_episode_steps=50", "eval.episodes=1", "eval.final_episodes=1")
     call = lambda: _script("multibuffer_experiments.sh", str(work), "1", *tiny, SET="miniature", RESULTS=str(results), ONLY="^swimmer es es.py 0$")
     (work / "swimmer").mkdir(parents=True)
     held = "pause 2026-01-01T00:00:00Z\nresume 2026-01-01T00:05:00Z\n"
     (work / "swimmer" / "es_seed0.pauses").write_text(held)  # as scripts/pause_runs.sh leaves it
+    killed = work / "swimmer" / "es_seed0"  # killed while writing its first checkpoint: a row, a staging folder, no checkpoint
+    (killed / "checkpoints" / ".checkpoint-000000000001.tmp").mkdir(parents=True)
+    (killed / "metrics.csv").write_text("iteration,td3_frames\n0,0\n")
+    (killed / "timing.txt").write_text("swimmer es_seed0: exit 137 after 15 s on commit abc\n")
     first = call()
     assert first.returncode == 0, first.stdout + first.stderr
     record = results / "swimmer" / "es_seed0"
@@ -32,13 +36,14 @@ def test_experiment_set_records_a_run_deletes_its_checkpoints_and_skips_it_next_
     assert (record / "pauses.txt").read_text() == held
     assert json.loads((record / "summary.json").read_text())["env"] == "Swimmer-v5"
     commit = subprocess.run(["git", "rev-parse", "HEAD"], cwd=ROOT, capture_output=True, text=True).stdout.strip()
-    attempt = (record / "timing.txt").read_text()
-    assert attempt.startswith("swimmer es_seed0: exit 0 after ") and attempt.rstrip().endswith(f" s on commit {commit}")
+    started_over, attempt = (record / "timing.txt").read_text().splitlines()  # the killed attempt, marked, then the run
+    assert started_over == "swimmer es_seed0: exit 137 after 15 s on commit abc (started over)"
+    assert attempt.startswith("swimmer es_seed0: exit 0 after ") and attempt.endswith(f" s on commit {commit}")
     run_dir = work / "swimmer" / "es_seed0"
     assert (run_dir / "summary.json").exists() and not (run_dir / "checkpoints").exists()
     second = call()
     assert second.returncode == 0 and "swimmer es_seed0: recorded, skipped" in second.stdout
-    assert len((record / "timing.txt").read_text().splitlines()) == 1
+    assert len((record / "timing.txt").read_text().splitlines()) == 2
 
 
 def test_paper_run_records_each_piece_a_killed_one_too_and_never_reruns_a_finished_run(tmp_path):
