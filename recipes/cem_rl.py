@@ -18,12 +18,12 @@ from __future__ import annotations
 
 from omegaconf import DictConfig
 
-from torchrl_esrl.algorithm.cem_rl_iteration import cem_rl_iteration, cem_rl_metrics
+from torchrl_esrl.algorithm.cem_rl_iteration import POPULATION_FRAMES, cem_rl_iteration, cem_rl_metrics
 from torchrl_esrl.run.algorithm_info import AlgorithmInfo
 from torchrl_esrl.run.factories import buffer_holdings, cem_holdings, make_actor_critic, make_cem, make_multibuffer, make_es_collector, make_td3, make_train_env, td3_holdings
 from torchrl_esrl.run.lifecycle import Run, recipe_main
 
-ALGORITHMS = (AlgorithmInfo("cem_rl", "CEM-RL", returned="CEM mean", rank=5),)
+ALGORITHMS = (AlgorithmInfo("cem_rl", "CEM-RL", returned="CEM mean", rank=5, td3_frames=POPULATION_FRAMES),)
 
 
 def train(cfg: DictConfig, run: Run) -> dict:

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 from omegaconf import DictConfig
 
-from torchrl_esrl.algorithm.cem_rl_iteration import cem_rl_iteration, cem_rl_metrics, one_buffer, routed_by_return
+from torchrl_esrl.algorithm.cem_rl_iteration import POPULATION_FRAMES, cem_rl_iteration, cem_rl_metrics, one_buffer, routed_by_return
 from torchrl_esrl.run.algorithm_info import AlgorithmInfo
 from torchrl_esrl.run.factories import (
     buffer_holdings,
@@ -33,8 +33,8 @@ from torchrl_esrl.run.factories import (
 from torchrl_esrl.run.lifecycle import Run, recipe_main
 
 ALGORITHMS = (
-    AlgorithmInfo("cem_rl_buffers", "CEM-RL (return-routed buffers)", returned="CEM mean", rank=5),
-    AlgorithmInfo("cem_rl_buffers_shared", "CEM-RL (return-routed buffers, one shared buffer)", returned="CEM mean", rank=5),
+    AlgorithmInfo("cem_rl_buffers", "CEM-RL (return-routed buffers)", returned="CEM mean", rank=5, td3_frames=POPULATION_FRAMES),
+    AlgorithmInfo("cem_rl_buffers_shared", "CEM-RL (return-routed buffers, one shared buffer)", returned="CEM mean", rank=5, td3_frames=POPULATION_FRAMES),
 )
 
 

@@ -57,7 +57,7 @@ from torchrl_esrl.report import (  # noqa: E402
     pairwise_table,
     permutation_test,
 )
-from torchrl_esrl.run.algorithm_info import AlgorithmInfo, discover  # noqa: E402
+from torchrl_esrl.run.algorithm_info import AlgorithmInfo, discover, load_recipe  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 RECORDS = ROOT / "docs" / "results" / "runs" / "multibuffer"
@@ -313,13 +313,19 @@ def test_returned_policies_are_named_from_the_recipes_grouped_by_policy_in_row_o
     assert ALGORITHMS.returned_text(["unknown"]) == "returned policy: unknown"
 
 
+def test_what_td3_frames_count_is_said_only_for_recipes_that_say_it():
+    assert ALGORITHMS.frames_text(["td3", "es_td3_buffers"]) == ""
+    assert ALGORITHMS.frames_text(["cem_rl_buffers", "td3", "cem_rl"]).startswith("CEM-RL, CEM-RL (return-routed buffers): TD3 frames are every population member's episode")
+
+
 CEM_RL_BUFFERS = ROOT / "docs" / "results" / "runs" / "cem_rl_buffers"
 
 
 @pytest.mark.skipif(not any(CEM_RL_BUFFERS.rglob("summary.json")), reason="no recorded CEM-RL run in this checkout")
 def test_a_report_of_cem_rl_rows_speaks_of_what_they_return_and_spend(tmp_path):
-    """Footnotes come from the rows' recipes: CEM-RL rows return the CEM mean, spend no ES frames
-    and overwrite nothing, so neither the ES-TD3 wording nor the overwrite count appears."""
+    """Footnotes come from the rows' recipes: CEM-RL rows return the CEM mean, count their population's
+    episodes as TD3 frames, spend no ES frames and overwrite nothing, so neither the ES-TD3 wording
+    nor the overwrite count appears."""
     from torchrl_esrl.report import make_report
 
     algorithms = Algorithms(discover(ROOT / "recipes"), reference="cem_rl_buffers", normalise_by="cem_rl")
@@ -327,6 +333,8 @@ def test_a_report_of_cem_rl_rows_speaks_of_what_they_return_and_spend(tmp_path):
     summary, results = written["summary_md"].read_text(), written["table_md"].read_text()
     assert "(CEM mean: CEM-RL, CEM-RL (return-routed buffers))" in summary and "overwritten" not in summary and "ES mean" not in summary
     assert "returns (CEM mean: CEM-RL, CEM-RL (return-routed buffers))." in results and "spend both" not in results
+    assert "CEM-RL, CEM-RL (return-routed buffers): TD3 frames are every population member's episode" in results
+    assert "overwrites.md" not in written["improvement_md"].read_text()
 
 
 def test_overview_cells_without_a_record_hold_no_number(tmp_path):
@@ -400,21 +408,31 @@ def test_the_results_page_copies_its_generated_tables_unchanged():
         assert body == (RESULTS_PAGE.parent / "results" / path).read_text().rstrip(), path
 
 
-COMMITTED_REPORTS = {  # report folder: its records (the paper's and the overview's are regenerated as their runs finish)
-    "miniature": ["runs/miniature"], "multibuffer": ["runs/multibuffer"],
-    ".": sorted(str(p.relative_to(RESULTS_PAGE.parent / "results")) for p in (RESULTS_PAGE.parent / "results" / "runs").glob("*_seed*")),
-}
+COMMITTED = load_recipe(ROOT / "scripts" / "committed_reports.py")  # every committed report and its command
 
 
-@pytest.mark.parametrize("folder", sorted(COMMITTED_REPORTS))
-def test_committed_report_tables_are_what_the_report_writes_from_their_records(folder, tmp_path):
-    from torchrl_esrl.report import make_report
+@pytest.mark.parametrize("folder", sorted(COMMITTED.REPORTS))
+def test_committed_report_tables_are_what_their_command_writes_from_their_records(folder, tmp_path, monkeypatch, capsys):
+    monkeypatch.chdir(ROOT)  # the commands name their records from the project's root
+    load_recipe(ROOT / "recipes" / "report.py").main(COMMITTED.report_arguments(folder, tmp_path))
+    written = sorted(tmp_path.glob("*.md"))
+    assert written
+    for path in written:
+        assert (RESULTS_PAGE.parent / "results" / folder / path.name).read_text() == path.read_text(), path.name
 
-    results = RESULTS_PAGE.parent / "results"
-    records = [results / path for path in COMMITTED_REPORTS[folder]]
-    if not records or not all(path.exists() for path in records):
-        pytest.skip("the records are not in this checkout")
-    written = make_report(records, tmp_path, ALGORITHMS)
-    assert {"table_md", "improvement_md", "pairwise_md", "summary_md"} <= set(written)
-    for path in (path for key, path in written.items() if key.endswith("_md")):
-        assert (results / folder / path.name).read_text() == path.read_text(), path.name
+
+def test_the_page_sync_replaces_a_stale_copy_and_nothing_else(tmp_path):
+    (tmp_path / "results" / "sub").mkdir(parents=True)
+    (tmp_path / "results" / "sub" / "table.md").write_text("| a |\n|---|\n| 2 |\n")
+    page = tmp_path / "page.md"
+    page.write_text("# Page\n\n<!-- sub/table.md -->\n| a |\n|---|\n| 1 |\n<!-- /sub/table.md -->\n\nmore text\n")
+    assert COMMITTED.sync_page(page, tmp_path / "results") == ["sub/table.md"]
+    assert page.read_text() == "# Page\n\n<!-- sub/table.md -->\n| a |\n|---|\n| 2 |\n<!-- /sub/table.md -->\n\nmore text\n"
+
+
+def test_committed_reports_refuse_an_unknown_folder_in_one_line(capsys):
+    with pytest.raises(SystemExit) as exit_:
+        COMMITTED.main(["nowhere"])
+    assert exit_.value.code == 2
+    error = capsys.readouterr().err
+    assert error.count("\n") == 1 and "nowhere" in error and "cem_rl_buffers" in error

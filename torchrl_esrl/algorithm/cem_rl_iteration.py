@@ -9,6 +9,9 @@ import torch
 
 from torchrl_esrl.es.cem import cem_rl_gradient_steps
 
+# What a CEM-RL run's ``td3_frames`` count (its recipes' ``AlgorithmInfo.td3_frames``): it has no TD3 phase.
+POPULATION_FRAMES = "TD3 frames are every population member's episode, the CEM's fitness evaluations and the critic's data alike (no ES frames)"
+
 
 def one_buffer(generation, buffer) -> None:
     """CEM-RL: every member's episode into the one replay buffer (``noisy``)."""

@@ -30,11 +30,11 @@ def make_report(paths, out_dir, algorithms: Algorithms) -> dict:
     rows = results_table(runs)
     csv_path, md_path = write_table(rows, out_dir, algorithms)
     write_runs_table(runs, out_dir, algorithms)
+    overwrites = overwrite_table(runs, algorithms)
     improvement = improvement_table(runs, algorithms)
-    improvement_csv, improvement_md = write_improvement_table(improvement, out_dir, algorithms)
+    improvement_csv, improvement_md = write_improvement_table(improvement, out_dir, algorithms, overwrites=bool(overwrites))
     pairwise = pairwise_table(runs, algorithms)
     pairwise_csv, pairwise_md = write_pairwise_table(pairwise, out_dir, algorithms)
-    overwrites = overwrite_table(runs, algorithms)
     written = {}
     if overwrites:
         written["overwrites_csv"], written["overwrites_md"] = write_overwrite_table(overwrites, out_dir, algorithms)

@@ -116,6 +116,7 @@ def write_overview(runs: list[dict], out_dir: Path, algorithms: Algorithms, pape
     csv_path, md_path = out_dir / "overview.csv", out_dir / "overview.md"
     write_csv(csv_path, OVERVIEW_COLUMNS, [{key: r.get(key, "") for key in OVERVIEW_COLUMNS} for r in rows])
     cells = {(r["env"], r["algorithm"], r["experiment"]): r for r in rows}
+    recorded = {key[1] for key, cell in cells.items() if cell["status"] == "recorded"}
     with_recipe = [algorithm for algorithm in overview_algorithms(runs, algorithms, paper, order, started) if algorithm not in missing]
     lines = ["| task | row | paper, Table 1: mean (std, median) | " + " | ".join(f"ours, `experiment={e}`" for e in experiments) + " |",
              "|---|---|---|" + "---|" * len(experiments)]
@@ -132,7 +133,8 @@ def write_overview(runs: list[dict], out_dir: Path, algorithms: Algorithms, pape
         "",
         f"Paper: {paper['caption']}",
         f"Ours: the final return of the returned policy ({algorithms.returned_text(with_recipe)}) over 10 deterministic",
-        "episodes, v5 tasks, per `experiment` preset; each cell says how many runs it holds and their frames. One run is a run,",
+        "episodes, v5 tasks, per `experiment` preset; each cell says how many runs it holds and their frames"
+        + (f" ({frames})" if (frames := algorithms.frames_text(recorded)) else "") + ". One run is a run,",
         "not a statistic. IQM CI: 95% percentile bootstrap, exact over every resample of the runs. `running`: started, no",
         "record yet; `not run`: no record and not started; a cell without a record holds no number.",
     ]

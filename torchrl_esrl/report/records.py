@@ -54,14 +54,25 @@ class Algorithms:
         info = self.info(algorithm)
         return (ratio not in ("", PAPER_RATIO), info.rank, info.label, ratio, algorithm)
 
-    def returned_text(self, algorithms) -> str:
-        """What each of ``algorithms`` returns, from their infos, grouped by policy in row order:
-        ``"ES mean: ES-TD3Buffers, OpenAI-ES; TD3 actor: TD3"``. TD3-actor rows are their row's."""
-        by_policy: dict[str, list[str]] = {}
+    def grouped_labels(self, algorithms, attribute: str) -> dict[str, list[str]]:
+        """The labels of ``algorithms`` (TD3-actor rows are their row's) grouped by their infos'
+        ``attribute``, in row order; an empty value is left out."""
+        groups: dict[str, list[str]] = {}
         for algorithm in sorted({a.partition(TD3_ACTOR_SUFFIX)[0] for a in algorithms}, key=lambda a: self.row_order((a, ""))):
             info = self.info(algorithm)
-            by_policy.setdefault(info.returned, []).append(info.label)
-        return "; ".join(f"{policy}: {', '.join(labels)}" for policy, labels in by_policy.items())
+            if getattr(info, attribute):
+                groups.setdefault(getattr(info, attribute), []).append(info.label)
+        return groups
+
+    def returned_text(self, algorithms) -> str:
+        """What each of ``algorithms`` returns, grouped by policy in row order:
+        ``"ES mean: ES-TD3Buffers, OpenAI-ES; TD3 actor: TD3"``."""
+        return "; ".join(f"{policy}: {', '.join(labels)}" for policy, labels in self.grouped_labels(algorithms, "returned").items())
+
+    def frames_text(self, algorithms) -> str:
+        """What the TD3 frames of ``algorithms`` count where a recipe says they are not a TD3
+        learner's own steps (``AlgorithmInfo.td3_frames``): ``"CEM-RL: every member's ..."``; empty when none says."""
+        return "; ".join(f"{', '.join(labels)}: {meaning}" for meaning, labels in self.grouped_labels(algorithms, "td3_frames").items())
 
     def reference_row(self, keys) -> tuple[str, str] | None:
         """The (algorithm, ratio) of ``reference`` among ``keys``: at the paper's ratio or none."""

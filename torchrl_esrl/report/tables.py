@@ -81,7 +81,8 @@ def write_table(rows: list[dict], out_dir: Path, algorithms: Algorithms) -> tupl
         f"Final return: deterministic evaluation of the policy each algorithm returns ({algorithms.returned_text(r['algorithm'] for r in rows)}"
         + ("; its TD3 actor on the `: its TD3 actor` rows" if actor_rows else "") + "). TD3 frames (gradient-based learner's environment",
         "steps) and ES frames (evolution's evaluation episodes) are counted separately"
-        + (f": {', '.join(algorithms.label(a) for a in both)} spend both, so at equal TD3 frames they have used many more environment frames in total." if both else "."),
+        + (f": {', '.join(algorithms.label(a) for a in both)} spend both, so at equal TD3 frames they have used many more environment frames in total." if both else ".")
+        + (f" {frames}." if (frames := algorithms.frames_text(r["algorithm"] for r in rows)) else ""),
         f"IQM CI: 95% percentile bootstrap over the row's runs ({_methods(r['runs'] for r in rows)}).",
     ]
     md_path.write_text("\n".join(lines) + "\n")
@@ -114,8 +115,9 @@ def improvement_table(runs: list[dict], algorithms: Algorithms) -> list[dict]:
     return rows
 
 
-def write_improvement_table(rows: list[dict], out_dir: Path, algorithms: Algorithms) -> tuple[Path, Path]:
-    """``improvement.csv`` and ``improvement.md``: P(reference > row) per env, with CI."""
+def write_improvement_table(rows: list[dict], out_dir: Path, algorithms: Algorithms, overwrites: bool = False) -> tuple[Path, Path]:
+    """``improvement.csv`` and ``improvement.md``: P(reference > row) per env, with CI; ``overwrites``:
+    the report counts overwrites (overwrites.md), and the footnote points there."""
     csv_path, md_path = out_dir / "improvement.csv", out_dir / "improvement.md"
     write_csv(csv_path, IMPROVEMENT_COLUMNS, rows)
     mine = algorithms.label(algorithms.reference or "")
@@ -128,8 +130,8 @@ def write_improvement_table(rows: list[dict], out_dir: Path, algorithms: Algorit
         f"Probability of improvement (Agarwal et al. 2021, rliable): the chance that a run of {mine} {PAPER_RATIO}",
         "ends with a higher final return than a run of the row, ties counting half; 0.5 = no difference.",
         f"CIs: 95% percentile bootstrap over the two rows' runs ({_methods(r['runs'] for r in rows)} of each row, every pair of resamples).",
-        "A difference is called one only by the Holm-corrected permutation tests of pairwise.md, not by a CI here. The returned",
-        "ES mean against its own TD3 actor (the same runs) is counted run by run in overwrites.md.",
+        "A difference is called one only by the Holm-corrected permutation tests of pairwise.md, not by a CI here."
+        + (" The returned ES mean against its own TD3 actor (the same runs) is counted run by run in overwrites.md." if overwrites else ""),
     ]
     md_path.write_text("\n".join(lines) + "\n")
     return csv_path, md_path

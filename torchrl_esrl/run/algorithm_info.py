@@ -18,12 +18,14 @@ from pathlib import Path
 class AlgorithmInfo:
     """name: ``summary.json``'s ``algorithm`` (the report groups runs by it); label: its display
     name; returned: the policy it returns, in words (``"ES mean"``); rank: its place among the
-    report's rows (smaller first, then by label)."""
+    report's rows (smaller first, then by label); td3_frames: what its ``td3_frames`` count, in
+    words, where they are not a TD3 learner's own environment steps (empty: they are)."""
 
     name: str
     label: str
     returned: str
     rank: int = 100
+    td3_frames: str = ""
 
 
 def load_recipe(path: str | Path):

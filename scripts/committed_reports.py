@@ -1,0 +1,87 @@
+"""The reports committed under docs/results/, each with the recipes/report.py arguments that write
+it from its records, and the results page's copies of their tables.
+
+    PYTHONPATH=. python scripts/committed_reports.py                 # every report, then the page
+    PYTHONPATH=. python scripts/committed_reports.py cem_rl_buffers  # one report, then the page
+    PYTHONPATH=. python scripts/committed_reports.py --list          # the commands, one a line
+
+docs/results.md copies generated tables between ``<!-- <path>.md -->`` and ``<!-- /<path>.md -->``
+(paths under docs/results/); after the reports are written, each copy is replaced by its file.
+tests/test_statistics.py checks that every report's tables are what these arguments write.
+"""
+from __future__ import annotations
+
+import argparse
+import re
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+RESULTS = ROOT / "docs" / "results"
+RESULTS_PAGE = ROOT / "docs" / "results.md"
+BLOCK = re.compile(r"(<!-- ((?:\w+/)*[\w.]+\.md) -->\n)(.*?)(\n<!-- /\2 -->)", flags=re.S)
+
+
+def _runs(*paths: str) -> list[str]:
+    return [f"docs/results/{path}" for path in paths]
+
+
+def _bench_runs() -> list[str]:
+    """The `experiment=bench` set: the run folders directly under docs/results/runs/."""
+    return sorted(str(path.relative_to(ROOT)) for path in (RESULTS / "runs").glob("*_seed*"))
+
+
+# report folder (under docs/results/) -> recipes/report.py's arguments but --out
+REPORTS = {
+    "overview": [*_runs("runs/paper", "runs/miniature", "runs/cem_rl_buffers"), "--overview", "--started", "docs/results/overview/started.txt"],
+    "miniature": _runs("runs/miniature"),
+    "cem_rl_buffers": [*_runs("runs/cem_rl_buffers"), "--reference", "cem_rl_buffers", "--normalise-by", "cem_rl"],
+    "multibuffer": _runs("runs/multibuffer"),
+    "paper": _runs("runs/paper/walker2d/es_td3_seed0"),
+    "paper/walker2d_td3": _runs("runs/paper/walker2d/td3_seed0"),
+    "paper/halfcheetah": _runs("runs/paper/halfcheetah/es_td3_seed0"),
+    "paper/swimmer": _runs("runs/paper/swimmer/es_td3_seed0"),
+    ".": _bench_runs(),
+}
+
+
+def report_arguments(folder: str, out: str | Path | None = None) -> list[str]:
+    """recipes/report.py's arguments for the report in ``folder``, written to ``out`` (default: its folder)."""
+    return [*REPORTS[folder], "--out", str(out if out is not None else Path("docs/results") / folder)]
+
+
+def sync_page(page: Path = RESULTS_PAGE, results: Path = RESULTS) -> list[str]:
+    """Replace every generated table the page copies with its file; returns the paths replaced."""
+    replaced = []
+
+    def copy(match: re.Match) -> str:
+        replaced.append(match.group(2))
+        return match.group(1) + (results / match.group(2)).read_text().rstrip() + match.group(4)
+
+    page.write_text(BLOCK.sub(copy, page.read_text()))
+    return replaced
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("folders", nargs="*", help=f"reports to write (default: all of {', '.join(REPORTS)})")
+    parser.add_argument("--list", action="store_true", help="print each report's command and stop")
+    args = parser.parse_args(argv)
+    unknown = [folder for folder in args.folders if folder not in REPORTS]
+    if unknown:
+        print(f"config error: folders: {', '.join(unknown)} (allowed: {', '.join(REPORTS)})", file=sys.stderr)
+        sys.exit(2)
+    if args.list:
+        for folder in args.folders or REPORTS:
+            print("python recipes/report.py " + " ".join(report_arguments(folder)))
+        return
+    from torchrl_esrl.run.algorithm_info import load_recipe
+
+    report = load_recipe(ROOT / "recipes" / "report.py").main
+    for folder in args.folders or REPORTS:
+        report(report_arguments(folder))
+    print(f"{RESULTS_PAGE.relative_to(ROOT)}: {len(sync_page())} generated tables copied")
+
+
+if __name__ == "__main__":
+    main()
