@@ -18,7 +18,7 @@ from __future__ import annotations
 
 from omegaconf import DictConfig
 
-from torchrl_esrl.algorithm.cem_rl_iteration import POPULATION_FRAMES, cem_rl_iteration, cem_rl_metrics
+from torchrl_esrl.algorithm.cem_rl_iteration import POPULATION_FRAMES, GenerationsProgress, cem_rl_iteration, cem_rl_metrics
 from torchrl_esrl.run.algorithm_info import AlgorithmInfo
 from torchrl_esrl.run.factories import buffer_holdings, cem_holdings, make_actor_critic, make_cem, make_multibuffer, make_es_collector, make_td3, make_train_env, td3_holdings
 from torchrl_esrl.run.lifecycle import Run, recipe_main
@@ -34,11 +34,13 @@ def train(cfg: DictConfig, run: Run) -> dict:
     cem = make_cem(cfg, actor)
     population_collector = make_es_collector(cfg, actor)  # one deterministic episode per member
     rl_members = int(cfg.cem.population_size * cfg.cem.rl_fraction)
+    generations = run.progress.phase = GenerationsProgress()  # the iteration under way, checkpointed at every stop point
     run.start(actor, td3=td3, buffer=buffer, cem=cem, population_collector=population_collector)
     counters = run.progress.counters  # checkpointed with the run; cem_rl_iteration advances them
     for iteration in run.iterations("CEM-RL"):
         # Generations until M new frames: the RL half trained, every member's episode into the buffer, the elites update CEM.
-        stats = cem_rl_iteration(cem, td3, buffer, population_collector, counters, cfg.td3.frames_per_iteration, cfg.cem.start_frames, rl_members, cfg.td3.tau)
+        stats = cem_rl_iteration(cem, td3, buffer, population_collector, counters, cfg.td3.frames_per_iteration, cfg.cem.start_frames, rl_members, cfg.td3.tau,
+                                 at=generations, stop_point=run.stop_point)
         run.log(iteration, counters["frames"], 0, eval_return=run.evaluate(cem.mean), **cem_rl_metrics(cem, td3, counters, stats))
     return run.finish(cem.mean, {"generations": cem.generation, "td3_updates": td3.updates, "population_size": int(cfg.cem.population_size)})
 

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 from omegaconf import DictConfig
 
-from torchrl_esrl.algorithm.cem_rl_iteration import POPULATION_FRAMES, cem_rl_iteration, cem_rl_metrics, one_buffer, routed_by_return
+from torchrl_esrl.algorithm.cem_rl_iteration import POPULATION_FRAMES, GenerationsProgress, cem_rl_iteration, cem_rl_metrics, one_buffer, routed_by_return
 from torchrl_esrl.run.algorithm_info import AlgorithmInfo
 from torchrl_esrl.run.factories import (
     buffer_holdings,
@@ -47,12 +47,14 @@ def train(cfg: DictConfig, run: Run) -> dict:
     population_collector = make_es_collector(cfg, actor)  # one deterministic episode per member
     rl_members = int(cfg.cem.population_size * cfg.cem.rl_fraction)
     route = one_buffer if cfg.buffer.mode == "shared" else routed_by_return(threshold, rl_members)
+    generations = run.progress.phase = GenerationsProgress()  # the iteration under way, checkpointed at every stop point
     run.start(actor, td3=td3, buffer=buffer, threshold=threshold, cem=cem, population_collector=population_collector)
     counters = run.progress.counters  # checkpointed with the run; cem_rl_iteration advances them
     for iteration in run.iterations("CEM-RL (return-routed buffers)"):
         # Generations until M new frames: the RL half trained on batches at the ratio once every buffer
         # holds K; RL members' episodes to noisy, CEM members' to good or bad by the threshold; the elites update CEM.
-        stats = cem_rl_iteration(cem, td3, buffer, population_collector, counters, cfg.td3.frames_per_iteration, cfg.cem.start_frames, rl_members, cfg.td3.tau, route)
+        stats = cem_rl_iteration(cem, td3, buffer, population_collector, counters, cfg.td3.frames_per_iteration, cfg.cem.start_frames, rl_members, cfg.td3.tau, route,
+                                 at=generations, stop_point=run.stop_point)
         run.log(
             iteration, counters["frames"], 0, eval_return=run.evaluate(cem.mean), **cem_rl_metrics(cem, td3, counters, stats),
             **threshold.metrics(), **{f"{name}_size": size for name, size in buffer.sizes().items()},

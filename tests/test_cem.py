@@ -91,6 +91,58 @@ def test_gradient_steps_follow_the_reference_schedule():
     assert torch.equal(population[1], flat_parameters(actor))
 
 
+class _Stop(Exception):
+    pass
+
+
+def test_gradient_steps_stopped_anywhere_continue_from_their_position_to_the_same_population_and_critic():
+    """A stop between two steps (the run's stop point: ``on_step``) leaves a :class:`GradientStepsPosition`
+    from which the same call continues, mid-member too, to the population, critic, step counts and
+    losses of the steps taken without a stop. (tests/test_lifecycle.py stops a run there, checkpoints,
+    and resumes it in a new process.)"""
+    from torchrl_esrl.collectors.es_collector import ESCollector
+    from torchrl_esrl.data.multibuffer import MultiBuffer
+    from torchrl_esrl.envs import make_env
+    from torchrl_esrl.es.cem import GradientStepsPosition, cem_rl_gradient_steps
+    from torchrl_esrl.modules.networks import flat_parameters, make_actor, make_critic
+    from torchrl_esrl.objectives.td3 import TD3
+
+    env = make_env("swimmer", max_episode_steps=20)
+
+    def setup():
+        torch.manual_seed(0)
+        actor = make_actor(8, env.action_spec, (16, 16))
+        td3 = TD3(actor, make_critic(8, 2, (16, 16)), env.action_spec)
+        cem = DiagonalCEM(flat_parameters(actor), population_size=4, sigma_init=1e-3, generator=torch.Generator().manual_seed(0))
+        population = cem.ask()
+        buffer = MultiBuffer(ratio=(0, 0, 1), capacity=1000, batch_size=8, min_size=8)
+        buffer.extend(ESCollector("swimmer", actor, backend="gym", max_episode_steps=20).evaluate(population).transitions, "noisy")
+        torch.manual_seed(1)  # the batches' draws
+        return td3, buffer, population
+
+    frames = 40  # per member of 2: 20 critic steps (1-20, 61-80), then 40 actor steps (21-60, 81-120)
+    td3, buffer, population = setup()
+    whole = cem_rl_gradient_steps(td3, buffer, population, rl_members=2, frames=frames, tau=0.005)
+    for stops in ([1], [20, 61], [60, 100, 120], [35, 36, 79]):
+        stopped, buffer_, population_ = setup()
+        at, taken = GradientStepsPosition(), {"steps": 0}
+
+        def on_step():
+            taken["steps"] += 1
+            if taken["steps"] in stops:
+                raise _Stop
+
+        for _ in stops:
+            with pytest.raises(_Stop):
+                cem_rl_gradient_steps(stopped, buffer_, population_, 2, frames, 0.005, at, on_step)
+        steps = cem_rl_gradient_steps(stopped, buffer_, population_, 2, frames, 0.005, at, on_step)
+        assert taken["steps"] == 120 and steps == whole, stops
+        assert torch.equal(population_, population), stops
+        for mine, theirs in zip(stopped.loss.qvalue_network_params.values(True, True), td3.loss.qvalue_network_params.values(True, True)):
+            assert torch.equal(mine, theirs), stops
+        assert stopped.updates == td3.updates
+
+
 def test_gradient_steps_are_td3s_own_steps_bit_for_bit_and_take_its_backward_override():
     """CEM-RL's gradient steps are :meth:`TD3.gradient_step`: with make_td3's fast pieces they give
     bit for bit the population and critic of the plain sequence (loss, ``loss.backward()``, Adam's

@@ -298,8 +298,8 @@ CEM_RL_BUFFERS = ["cem.population_size=6", "cem.start_frames=0", "buffer.batch_s
 BASELINES = [
     ("td3.py", [], "checkpoint-000000000100"),
     ("es.py", ["iterations=4"], "checkpoint-000000000001"),
-    ("cem_rl.py", ["iterations=4", "cem.population_size=4", "cem.start_frames=0"], "checkpoint-000000000001"),
-    ("cem_rl_buffers.py", ["iterations=4", *CEM_RL_BUFFERS], "checkpoint-000000000001"),
+    ("cem_rl.py", ["iterations=4", "cem.population_size=4", "cem.start_frames=0"], None),  # None: its first checkpoint
+    ("cem_rl_buffers.py", ["iterations=4", *CEM_RL_BUFFERS], None),
 ]
 
 
@@ -310,7 +310,8 @@ def test_baseline_killed_then_resumed_gives_the_same_metrics(tmp_path, script, e
     result = run(reference, *extra, script=script)
     assert result.returncode == 0, result.stderr[-3000:]
     killed = tmp_path / "killed"
-    returncode = start_and_kill(killed, lambda: first_checkpoint in checkpoints(killed), 0.0, *extra, script=script)
+    written = (lambda: first_checkpoint in checkpoints(killed)) if first_checkpoint else (lambda: bool(checkpoints(killed)))
+    returncode = start_and_kill(killed, written, 0.0, *extra, script=script)
     assert returncode == -signal.SIGKILL
     assert len(rows_without_wall_time(killed)) < len(rows_without_wall_time(reference))  # killed mid-run
     result = run(killed, *extra, script=script)
@@ -436,6 +437,35 @@ def test_killed_in_the_final_stage_then_rerun_ends_as_an_uninterrupted_run(finis
     reference = finished(script)
     assert rows_without_wall_time(tmp_path) == rows_without_wall_time(reference)
     assert summary_without_wall_time(tmp_path) == summary_without_wall_time(reference)  # frame counts included
+
+
+# CEM-RL's second generation takes its gradient steps (F = the first's frames: 4 x 60 and 6 x 60):
+# cem_rl.py 120 critic + 240 actor steps per member of 2, cem_rl_buffers.py 120 + 360 per member of 3.
+# Step 400 is member 2's critic steps; step 130, member 1's actor steps.
+STOPS = [("cem_rl.py", 400, "member 2/2"), ("cem_rl_buffers.py", 130, "member 1/3")]
+
+
+@pytest.mark.e2e
+@pytest.mark.parametrize("script, step, member", STOPS)
+def test_cem_rl_stopped_in_its_gradient_steps_checkpoints_there_and_resumes_to_the_same_records(finished, tmp_path, script, step, member):
+    injected = [sys.executable, str(ROOT / "tests" / "inject_stop.py"), str(step), script, TINY, *RESUME, *RECIPES[script], f"hydra.run.dir={tmp_path}"]
+    stopped = subprocess.run(injected, cwd=ROOT, capture_output=True, text=True, timeout=900, env=ENV)
+    assert stopped.returncode == 128 + signal.SIGTERM, stopped.stderr[-3000:]
+    line = stop_line(stopped.stderr, "SIGTERM")
+    assert f", generation under way, {step} gradient steps taken (in CEM-RL's gradient steps, {member})" in line, line
+    written = line.split("; checkpoint ")[1].split(" written")[0]
+    assert written in checkpoints(tmp_path) and len(rows_without_wall_time(tmp_path)) == 1, line  # mid-iteration 2
+    from torchrl_esrl.envs import env_sizes
+    from torchrl_esrl.run.capacity import estimate
+
+    cfg = compose_tiny(CONFIGS[script], *RECIPES[script])
+    disk = int(subprocess.run(["du", "-s", "--block-size=1", str(tmp_path / "checkpoints" / written)], capture_output=True, text=True, check=True).stdout.split()[0])
+    assert disk <= estimate(load_recipe(script).holdings(cfg, env_sizes(cfg.env.id, cfg.env.max_episode_steps))).checkpoint  # its population included
+    result = run(tmp_path, *RECIPES[script], script=script)
+    assert result.returncode == 0, result.stderr[-3000:]
+    reference = finished(script)
+    assert rows_without_wall_time(tmp_path) == rows_without_wall_time(reference)
+    assert summary_without_wall_time(tmp_path) == summary_without_wall_time(reference)
 
 
 def damage(checkpoint, how):
@@ -590,7 +620,9 @@ def test_estimate_matches_the_filled_buffers_and_the_written_checkpoint(finished
     run_dir = finished(script)
     cfg = compose_tiny(CONFIGS[script], *RECIPES[script])
     sizes = env_sizes(cfg.env.id, cfg.env.max_episode_steps)
-    needed = estimate(load_recipe(script).holdings(cfg, sizes))
+    holdings = load_recipe(script).holdings(cfg, sizes)
+    needed = estimate(holdings)
+    stop_only = sum(held.bytes for held in holdings if held.checkpointed and not held.in_memory)  # a stop's checkpoint adds them (CEM-RL's population)
     newest = run_dir / "checkpoints" / checkpoints(run_dir)[-1]
     per_buffer = int(cfg.buffer.capacity) * bytes_per_transition(sizes.observation_dim, sizes.action_dim)
     unallocated = needed.memory.get("buffers", 0) // per_buffer  # the buffers the recipe builds
@@ -604,7 +636,7 @@ def test_estimate_matches_the_filled_buffers_and_the_written_checkpoint(finished
         unallocated -= len(storages)
     disk = int(subprocess.run(["du", "-s", "--block-size=1", str(newest)], capture_output=True, text=True, check=True).stdout.split()[0])
     full = disk + unallocated * per_buffer  # as if every buffer had been written
-    assert full <= needed.checkpoint and full >= 0.8 * (needed.checkpoint - CHECKPOINT_MARGIN), (disk, full, needed.checkpoint)
+    assert full + stop_only <= needed.checkpoint and full + stop_only >= 0.8 * (needed.checkpoint - CHECKPOINT_MARGIN), (disk, full, stop_only, needed.checkpoint)
 
 
 def _file_size_limit(limit):

@@ -15,9 +15,13 @@ diagonal covariance (``sepCEM``): sample ``z_i = mu + sqrt(var) * eps_i`` (antit
 :func:`cem_rl_gradient_steps` is the RL half of one generation: for each of the first
 ``rl_members`` members, load it into the TD3 actor (and its target) with a fresh Adam, run
 ``F // rl_members`` critic steps, then ``F`` actor steps, F = frames of the previous generation,
-on ``td3.num_threads`` torch threads as TD3's own phase.
+on ``td3.num_threads`` torch threads as TD3's own phase. Where the steps stand is a
+:class:`GradientStepsPosition`: a run stopped between two steps resumes from it.
 """
 from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
 
 import torch
 
@@ -146,7 +150,35 @@ def _gradient_step(td3, name: str, loss_fn, optimizer, targets: list, sources: l
     return value
 
 
-def cem_rl_gradient_steps(td3, buffer, population: torch.Tensor, rl_members: int, frames: int, tau: float) -> dict:
+@dataclass
+class GradientStepsPosition:
+    """Where the gradient steps of one generation stand (:func:`cem_rl_gradient_steps` resumes from
+    it): the member in training and its critic and actor steps taken, and the generation's step
+    counts and critic losses so far."""
+
+    member: int = 0
+    member_critic_steps: int = 0
+    member_actor_steps: int = 0
+    critic_steps: int = 0
+    actor_steps: int = 0
+    critic_losses: list[float] = field(default_factory=list)
+
+    @property
+    def steps(self) -> int:
+        return self.critic_steps + self.actor_steps
+
+    def state_dict(self) -> dict:
+        counts = ("member", "member_critic_steps", "member_actor_steps", "critic_steps", "actor_steps")
+        return {**{key: getattr(self, key) for key in counts}, "critic_losses": torch.tensor(self.critic_losses, dtype=torch.float64)}
+
+    def load_state_dict(self, state: dict) -> None:
+        for key in ("member", "member_critic_steps", "member_actor_steps", "critic_steps", "actor_steps"):
+            setattr(self, key, int(state[key]))
+        self.critic_losses = torch.as_tensor(state["critic_losses"]).tolist()  # float64: the floats as they were
+
+
+def cem_rl_gradient_steps(td3, buffer, population: torch.Tensor, rl_members: int, frames: int, tau: float,
+                          at: GradientStepsPosition | None = None, on_step: Callable[[], None] | None = None) -> dict:
     """The RL half of one CEM-RL generation (reference ``es_grad.py``), in place on ``population``.
 
     For each of the first ``rl_members`` members: load it into the actor and the actor target,
@@ -158,20 +190,37 @@ def cem_rl_gradient_steps(td3, buffer, population: torch.Tensor, rl_members: int
     threads (default: this job's share of the cores, torchrl_esrl/threads.py), as
     :func:`~torchrl_esrl.algorithm.td3_phase.td3_phase` runs TD3's. Returns the step counts and
     critic losses.
+
+    ``at``: where the steps stand, advanced after every step (default: from the start);
+    ``on_step()`` is called after each (a stop point). From a position mid-member, the TD3
+    learner is the one checkpointed there: its actor takes its member's row as storage again, as
+    it had, and its target and Adam are kept.
     """
+    at = GradientStepsPosition() if at is None else at
     loss = td3.loss
-    critic_steps, actor_steps, critic_losses = 0, 0, []
+    critic_per_member, actor_per_member = int(frames) // int(rl_members), int(frames)
     with torch_threads(td3.num_threads):
-        for member in range(int(rl_members)):
-            load_actor_and_target(td3, population[member])  # rebinds the actor's parameters: pair them after it
+        while at.member < int(rl_members):
+            member = at.member
+            if at.member_critic_steps == 0 and at.member_actor_steps == 0:
+                load_actor_and_target(td3, population[member])  # rebinds the actor's parameters: pair them after it
+            else:
+                load_flat_parameters(td3.actor, population[member])  # the row holds the actor's values: the same storage as before the stop
             critic = ("critic", loss.value_loss, td3.critic_optimizer, *_lerp_pairs(loss.target_qvalue_network_params, loss.qvalue_network_params))
             actor = ("actor", loss.actor_loss, td3.actor_optimizer, *_lerp_pairs(loss.target_actor_network_params, loss.actor_network_params))
-            for _ in range(int(frames) // int(rl_members)):
-                critic_losses.append(_gradient_step(td3, *critic, buffer.sample(), tau, member))
-                critic_steps += 1
-            for _ in range(int(frames)):
+            while at.member_critic_steps < critic_per_member:
+                at.critic_losses.append(_gradient_step(td3, *critic, buffer.sample(), tau, member))
+                at.member_critic_steps += 1
+                at.critic_steps += 1
+                if on_step is not None:
+                    on_step()
+            while at.member_actor_steps < actor_per_member:
                 _gradient_step(td3, *actor, buffer.sample(), tau, member)
-                actor_steps += 1
+                at.member_actor_steps += 1
+                at.actor_steps += 1
+                if on_step is not None:
+                    on_step()
             population[member] = flat_parameters(td3.actor)
-    td3.updates += critic_steps
-    return {"critic_steps": critic_steps, "actor_steps": actor_steps, "critic_losses": critic_losses}
+            at.member, at.member_critic_steps, at.member_actor_steps = member + 1, 0, 0
+    td3.updates += at.critic_steps
+    return {"critic_steps": at.critic_steps, "actor_steps": at.actor_steps, "critic_losses": at.critic_losses}

@@ -49,14 +49,17 @@ def mlp_parameters(sizes: list[int]) -> int:
 class Holding:
     """Bytes one part of a run holds in memory. ``part``: ``buffers``, ``networks``,
     ``population`` or ``generation`` (parts of one name add up); ``field``: the config key that
-    sizes it, named by a refusal; ``checkpointed``: written to every checkpoint too;
-    ``on_device``: on the run's ``device`` (GPU memory on ``cuda``), else on the host."""
+    sizes it, named by a refusal; ``checkpointed``: written to every checkpoint too (or to the
+    checkpoints a stop writes: the largest one counts); ``in_memory``: false for bytes only a
+    checkpoint adds (a copy of what memory already counts); ``on_device``: on the run's ``device``
+    (GPU memory on ``cuda``), else on the host."""
 
     part: str
     bytes: int
     field: str
     checkpointed: bool = True
     on_device: bool = False
+    in_memory: bool = True
 
 
 def network_holding(copies: int, parameters: int, field: str) -> Holding:
@@ -91,7 +94,7 @@ def estimate(holdings: Iterable[Holding]) -> Estimate:
     """What a run holds, from what its recipe builds (module docstring)."""
     result = Estimate(checkpoint=CHECKPOINT_MARGIN)
     for held in holdings:
-        result.memory[held.part] = result.memory.get(held.part, 0) + held.bytes
+        result.memory[held.part] = result.memory.get(held.part, 0) + (held.bytes if held.in_memory else 0)
         result.fields.setdefault(held.part, held.field)
         result.buffer_memory += held.bytes if held.on_device else 0
         result.checkpoint += held.bytes if held.checkpointed else 0

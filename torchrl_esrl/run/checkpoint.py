@@ -22,7 +22,7 @@ subset they have):
 
 Files are written by TorchRL's :class:`~torchrl.checkpoint.Checkpoint` (staged in a hidden
 directory, then renamed) under :class:`~torchrl.checkpoint.CheckpointRotation`
-(``<run_dir>/checkpoints/checkpoint-<td3 frames + iteration>``, ``checkpoint.keep_last`` kept), so a
+(``<run_dir>/checkpoints/checkpoint-<td3 frames + iteration + phase steps>``, :attr:`RunProgress.checkpoint_step`; ``checkpoint.keep_last`` kept), so a
 kill during a save leaves the previous checkpoint whole. Checkpoints are taken at every
 iteration boundary and every ``checkpoint.every_frames`` TD3 frames (mid-phase, possibly
 mid-episode); :meth:`RunCheckpoint.save` refuses to write non-finite parameters, so nothing
@@ -183,7 +183,7 @@ class RunCheckpoint:
                 if not torch.isfinite(tensor).all():
                     raise FloatingPointError(f"refusing to checkpoint non-finite parameters of '{name}'")
         self._last_frames = self.progress.frames_now
-        step = self.progress.frames_now + self.progress.iteration  # grows with every save
+        step = self.progress.checkpoint_step  # grows with every save
         self._saved_step = step
         metadata = {"iteration": self.progress.iteration, "td3_frames": self.progress.frames_now, "config": self.config, "algorithm": self.algorithm}
         self.digests.metadata = json.loads(json.dumps(metadata))  # as the manifest will read back
@@ -215,7 +215,7 @@ class RunCheckpoint:
 
     def save_if_new(self) -> Path:
         """:meth:`save`, unless the last save was at this very point (a stop right after one)."""
-        if getattr(self, "_saved_step", None) == self.progress.frames_now + self.progress.iteration and self.latest() is not None:
+        if getattr(self, "_saved_step", None) == self.progress.checkpoint_step and self.latest() is not None:
             return self.latest()
         return self.save()
 

@@ -35,7 +35,7 @@ from torchrl_esrl.collectors.td3_collector import GymTD3Collector, make_td3_coll
 from torchrl_esrl.objectives.td3 import TD3, ForeachSoftUpdate, ManualGradTD3Loss
 from torchrl_esrl.data.threshold import Threshold
 from torchrl_esrl.es.cem import DiagonalCEM
-from torchrl_esrl.run.capacity import Holding, bytes_per_transition, mlp_parameters, network_holding, population_holdings
+from torchrl_esrl.run.capacity import FLOAT, Holding, bytes_per_transition, mlp_parameters, network_holding, population_holdings
 from torchrl_esrl.threads import job_cores
 
 log = logging.getLogger(__name__)
@@ -265,8 +265,10 @@ def es_holdings(cfg: DictConfig, sizes) -> list[Holding]:
 
 
 def cem_holdings(cfg: DictConfig, sizes) -> list[Holding]:
-    """:func:`make_cem`'s CEM state and one generation (population, noise, episodes)."""
-    return _strategy_holdings(cfg, sizes, "cem", DiagonalCEM.HELD_COPIES)
+    """:func:`make_cem`'s CEM state and one generation (population, noise, episodes); a stop
+    within the generation's gradient steps also writes its population to the checkpoint."""
+    population = Holding("population", FLOAT * _actor_parameters(cfg, sizes) * int(cfg.cem.population_size), "cem.population_size", in_memory=False)
+    return [*_strategy_holdings(cfg, sizes, "cem", DiagonalCEM.HELD_COPIES), population]
 
 
 def make_threshold(cfg: DictConfig) -> Threshold:

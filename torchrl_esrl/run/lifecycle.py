@@ -12,8 +12,9 @@ A run directory has one writer (:mod:`~torchrl_esrl.run.lock`): a second run tha
 is refused the same way, before Hydra writes anything.
 
 SIGTERM and SIGINT stop a run cleanly (:class:`StopOnSignal`): it finishes the step in progress
-(a TD3 batch with its updates, an ES generation, an iteration's end), writes a checkpoint where
-one can be written (in a TD3 phase and at an iteration boundary), says so in its log and on
+(a TD3 batch with its updates, an ES generation, a CEM-RL gradient step or generation, an
+iteration's end), writes a checkpoint where one can be written (in a TD3 phase, in CEM-RL, at an
+iteration boundary: :meth:`Run.stop_point`), says so in its log and on
 stderr with the command that resumes it, and exits 128 + the signal's number. Without a step
 boundary within :data:`STOP_GRACE_S` seconds, or on a second signal, it stops at once, from its
 last checkpoint. Under submitit, the preemption signal (SIGUSR2) stops the run the same way,
@@ -137,9 +138,15 @@ class Run(RunHarness):
         self.show_phase(f"ES {index + 1}/{self.cfg.es.generations_per_iteration} generations")
         self.stop.check(f"after ES generation {index + 1}/{self.cfg.es.generations_per_iteration}")
 
+    def stop_point(self, where: str) -> None:
+        """A stop point where the run's state is whole (its components and ``progress.phase``),
+        ``where`` in words: on a stop request, a checkpoint of this point, then the stop."""
+        self.stop.check(where, self.checkpoint.save_if_new)
+
     def position(self) -> str:
-        """Where the run stands, in words (the stop line)."""
-        return f"iteration {self.progress.iteration + 1}/{self.cfg.iterations}, TD3 frame {self.progress.frames_now}"
+        """Where the run stands, in words (the stop line); within a recipe's phase, as the phase says."""
+        phase = self.progress.phase
+        return f"iteration {self.progress.iteration + 1}/{self.cfg.iterations}, " + (phase.position() if phase is not None else f"TD3 frame {self.progress.frames_now}")
 
 
 def threads_used(components: dict) -> dict:

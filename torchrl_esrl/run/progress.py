@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
+from typing import Any
 
 from torchrl_esrl.algorithm.td3_phase import PhaseProgress
 
@@ -15,6 +16,10 @@ class RunProgress:
     td3_frames: int = 0  # TD3 frames of the finished iterations
     td3_phase: PhaseProgress = field(default_factory=PhaseProgress)
     counters: dict[str, int] = field(default_factory=dict)  # a recipe's own running counts
+    # A recipe's own state between iteration boundaries, set before ``Run.start``: an object with
+    # state_dict, load_state_dict, ``work`` (a count that grows with every step it takes) and
+    # ``position()`` (where it stands, in words).
+    phase: Any = None
     started: float = field(default_factory=time.perf_counter)  # wall clock, shifted by the time before a resume
 
     def wall_time(self) -> float:
@@ -24,16 +29,26 @@ class RunProgress:
     def frames_now(self) -> int:
         return self.td3_frames + self.td3_phase.collected
 
+    @property
+    def checkpoint_step(self) -> int:
+        """The number of a checkpoint taken now: grows with every iteration, frame and phase step."""
+        return self.frames_now + self.iteration + (self.phase.work if self.phase is not None else 0)
+
     def finish_iteration(self) -> None:
         self.iteration += 1
         self.td3_frames = self.frames_now
         self.td3_phase = PhaseProgress()
 
     def state_dict(self) -> dict:
-        return {"iteration": self.iteration, "td3_frames": self.td3_frames, "elapsed_s": self.wall_time(), "td3_phase": self.td3_phase.state_dict(), "counters": dict(self.counters)}
+        state = {"iteration": self.iteration, "td3_frames": self.td3_frames, "elapsed_s": self.wall_time(), "td3_phase": self.td3_phase.state_dict(), "counters": dict(self.counters)}
+        if self.phase is not None:
+            state["phase"] = self.phase.state_dict()
+        return state
 
     def load_state_dict(self, state: dict) -> None:
         self.iteration, self.td3_frames = int(state["iteration"]), int(state["td3_frames"])
         self.started = time.perf_counter() - float(state["elapsed_s"])
         self.td3_phase.load_state_dict(state["td3_phase"])
         self.counters = {key: int(value) for key, value in state["counters"].items()}
+        if self.phase is not None and "phase" in state:  # a checkpoint from before phases were saved: at an iteration boundary
+            self.phase.load_state_dict(state["phase"])
