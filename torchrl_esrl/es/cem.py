@@ -167,12 +167,13 @@ class GradientStepsPosition:
     def steps(self) -> int:
         return self.critic_steps + self.actor_steps
 
+    COUNTS = ("member", "member_critic_steps", "member_actor_steps", "critic_steps", "actor_steps")
+
     def state_dict(self) -> dict:
-        counts = ("member", "member_critic_steps", "member_actor_steps", "critic_steps", "actor_steps")
-        return {**{key: getattr(self, key) for key in counts}, "critic_losses": torch.tensor(self.critic_losses, dtype=torch.float64)}
+        return {**{key: getattr(self, key) for key in self.COUNTS}, "critic_losses": torch.tensor(self.critic_losses, dtype=torch.float64)}
 
     def load_state_dict(self, state: dict) -> None:
-        for key in ("member", "member_critic_steps", "member_actor_steps", "critic_steps", "actor_steps"):
+        for key in self.COUNTS:
             setattr(self, key, int(state[key]))
         self.critic_losses = torch.as_tensor(state["critic_losses"]).tolist()  # float64: the floats as they were
 
