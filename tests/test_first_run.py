@@ -73,7 +73,6 @@ def test_quiet_logs_silences_exactly_the_two_messages(tmp_path, monkeypatch, cap
     import gymnasium as gym
     import torch
     from tensordict import TensorDict
-    from torchrl._utils import logger as torchrl_logger
     from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
 
     from torchrl_esrl.envs import quiet_logs
@@ -87,6 +86,7 @@ def test_quiet_logs_silences_exactly_the_two_messages(tmp_path, monkeypatch, cap
             self.messages.append(record.getMessage())
 
     records = Records()
+    torchrl_logger = logging.getLogger("torchrl")  # TorchRL's own logger, by its public name
     torchrl_logger.addHandler(records)
     monkeypatch.chdir(tmp_path)
     quiet_logs()

@@ -807,12 +807,16 @@ def test_a_signal_asks_for_a_stop_a_second_one_or_the_grace_period_stops_at_once
 
     stop = StopOnSignal().install()
     try:
+        asked = []
         stop.check("nothing asked")  # no stop asked: goes on
+        stop.check(lambda: asked.append(1) or "in words")  # a lazy point: its words only on a stop
+        assert not asked
         os.kill(os.getpid(), signal.SIGTERM)
         assert stop.requested
         with pytest.raises(Stopped) as stopped:
-            stop.check("at a step boundary", lambda: Path("checkpoint-7"))
+            stop.check(lambda: "at a step boundary", lambda: Path("checkpoint-7"))
         assert stopped.value.signum == signal.SIGTERM and not stopped.value.at_once and stopped.value.written == Path("checkpoint-7")
+        assert stopped.value.where == "at a step boundary"
         with pytest.raises(Stopped) as stopped:
             os.kill(os.getpid(), signal.SIGINT)  # a second signal: at once
         assert stopped.value.at_once and stopped.value.signum == signal.SIGTERM

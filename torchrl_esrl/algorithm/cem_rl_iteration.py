@@ -91,7 +91,7 @@ class GenerationsProgress:
 
 
 def cem_rl_iteration(cem, td3, buffer, population_collector, counters: dict, frames_per_iteration: int, start_frames: int, rl_members: int, tau: float,
-                     route: Callable = one_buffer, at: GenerationsProgress | None = None, stop_point: Callable[[str], None] | None = None) -> dict:
+                     route: Callable = one_buffer, at: GenerationsProgress | None = None, stop_point: Callable[[str | Callable[[], str]], None] | None = None) -> dict:
     """Generations until ``frames_per_iteration`` new frames. Each: sample a population; past
     ``start_frames`` frames and once the buffer is ready, train its first ``rl_members`` with
     the shared critic (:func:`~torchrl_esrl.es.cem.cem_rl_gradient_steps`, F = the previous
@@ -102,7 +102,8 @@ def cem_rl_iteration(cem, td3, buffer, population_collector, counters: dict, fra
 
     ``at``: where the iteration stands (default: at its start), advanced as it goes;
     ``stop_point(where)`` is called after every gradient step and every generation, where the
-    run's state is whole (a stop there checkpoints that point and resumes from it).
+    run's state is whole (a stop there checkpoints that point and resumes from it); ``where``
+    is the point in words, or within the gradient steps a function giving them.
     """
     at = GenerationsProgress() if at is None else at
     for key in ("frames", "last_generation_frames", "actor_steps"):
@@ -115,7 +116,7 @@ def cem_rl_iteration(cem, td3, buffer, population_collector, counters: dict, fra
             population, learning = at.population, True
         if learning:
             at.population = population
-            on_step = None if stop_point is None else lambda: stop_point(f"in CEM-RL's gradient steps, member {at.steps.member + 1}/{rl_members}")
+            on_step = None if stop_point is None else lambda: stop_point(lambda: f"in CEM-RL's gradient steps, member {at.steps.member + 1}/{rl_members}")
             steps = cem_rl_gradient_steps(td3, buffer, population, rl_members, counters["last_generation_frames"], tau, at.steps, on_step)
             counters["actor_steps"] += steps["actor_steps"]
         generation = population_collector.evaluate(population)

@@ -26,7 +26,6 @@ warm start, controls, ...) is copied into that member's row of the batch. This r
 """
 from __future__ import annotations
 
-import os
 import threading
 from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
@@ -43,6 +42,7 @@ from torchrl_esrl.collectors.mujoco_tasks import (
     RENDERING_KWARGS, REPRODUCED_KWARGS, TASKS, TaskRules, env_refusals, observation_layout, spec_refusals,
 )
 from torchrl_esrl.modules.networks import Mirrored, PopulationActor, one_blas_thread
+from torchrl_esrl.threads import process_cores
 from torchrl_esrl.torchrl_private import gym_mujoco_constants
 
 __all__ = ["MujocoBatchBackend", "RENDERING_KWARGS", "REPRODUCED_KWARGS", "TASKS", "TaskRules"]  # the tasks' rules live in mujoco_tasks
@@ -84,7 +84,7 @@ class MujocoBatchBackend:
             :meth:`refusal` takes: a task of :data:`TASKS` as gymnasium defines it.
         population_actor: evaluates members' actors from their flat parameters.
         max_episode_steps: time limit (the env spec's when None).
-        nthread: threads in all (default: all CPUs).
+        nthread: threads in all (default: the cores this process may run on, ``threads.process_cores``).
         workers: threads that each play whole chunks on a batch of their own, taking the next
             chunk when done with one (default: 2, or 1 on one thread); each batch steps on
             ``nthread // workers`` MuJoCo threads. More workers make smaller chunks, and every chunk
@@ -129,7 +129,7 @@ class MujocoBatchBackend:
         self.env_id = spec.id
         self.rules = TASKS[self.env_id]
         self.policy = population_actor
-        self.nthread = int(nthread or os.cpu_count() or 1)
+        self.nthread = int(nthread or process_cores())
         workers = int(workers or min(self.nthread, 2))
         self.persistent = bool(persistent or self.rules.contact_forces)
         self.workers = [_Worker(spec, self.rules.contact_forces) for _ in range(workers)]

@@ -138,9 +138,10 @@ class Run(RunHarness):
         self.show_phase(f"ES {index + 1}/{self.cfg.es.generations_per_iteration} generations")
         self.stop.check(f"after ES generation {index + 1}/{self.cfg.es.generations_per_iteration}")
 
-    def stop_point(self, where: str) -> None:
+    def stop_point(self, where: str | Callable[[], str]) -> None:
         """A stop point where the run's state is whole (its components and ``progress.phase``),
-        ``where`` in words: on a stop request, a checkpoint of this point, then the stop."""
+        ``where`` in words (or a function giving them, called only on a stop): on a stop request,
+        a checkpoint of this point, then the stop."""
         self.stop.check(where, self.checkpoint.save_if_new)
 
     def position(self) -> str:

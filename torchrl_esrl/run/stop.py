@@ -60,9 +60,10 @@ class StopOnSignal:
     def requested(self) -> bool:
         return self.signum is not None
 
-    def check(self, where: str, before_stop: Callable[[], Path | None] | None = None) -> None:
+    def check(self, where: str | Callable[[], str], before_stop: Callable[[], Path | None] | None = None) -> None:
         """A step boundary: if a stop was asked for, ``before_stop()`` (a checkpoint) and :class:`Stopped`.
-        Off the main thread (the background ES generations), only :class:`Stopped`."""
+        Off the main thread (the background ES generations), only :class:`Stopped`. ``where``: the
+        point in words, or a function giving them, called only on a stop (a hot loop's stop points)."""
         if self.signum is None:
             return
         written = None
@@ -70,7 +71,7 @@ class StopOnSignal:
             signal.setitimer(signal.ITIMER_REAL, 0)  # the checkpoint write is not cut short
             if before_stop is not None:
                 written = before_stop()
-        raise Stopped(self.signum, where=where, written=written)
+        raise Stopped(self.signum, where=where() if callable(where) else where, written=written)
 
     def hand_over(self) -> None:
         """After the stop is recorded: the handler this one replaced for the signal, if it was
