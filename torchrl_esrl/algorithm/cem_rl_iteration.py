@@ -116,7 +116,8 @@ def cem_rl_iteration(cem, td3, buffer, population_collector, counters: dict, fra
             population, learning = at.population, True
         if learning:
             at.population = population
-            on_step = None if stop_point is None else lambda: stop_point(lambda: f"in CEM-RL's gradient steps, member {at.steps.member + 1}/{rl_members}")
+            where = lambda: f"in CEM-RL's gradient steps, member {at.steps.member + 1}/{rl_members}"  # worded only on a stop
+            on_step = None if stop_point is None else (lambda: stop_point(where))
             steps = cem_rl_gradient_steps(td3, buffer, population, rl_members, counters["last_generation_frames"], tau, at.steps, on_step)
             counters["actor_steps"] += steps["actor_steps"]
         generation = population_collector.evaluate(population)
