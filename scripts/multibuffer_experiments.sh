@@ -8,6 +8,9 @@
 #   HalfCheetah-v5, Walker2d-v5, Swimmer-v5 and Ant-v5, seeds 0-4 of: ES-TD3Buffers 0.5:0.2:0.3; one
 #   shared buffer (buffer.mode=shared); TD3 (Fujimoto's uniform warm-up, K = 1,000 frames: conf/td3.yaml);
 #   OpenAI-ES.
+# SET=quarter (conf/experiment/quarter.yaml: the paper's schedule at 25%, K = M/4), 30 runs: Walker2d-v5
+#   first, then HalfCheetah-v5, seeds 0-4 of: ES-TD3Buffers 0.5:0.2:0.3; one shared buffer
+#   (buffer.mode=shared); TD3 (Fujimoto's uniform warm-up, K = 6,250 frames).
 # SET=cem_rl_buffers (the miniature's preset and scaling), 20 runs: HalfCheetah-v5 and Walker2d-v5, seeds
 #   0-4 of CEM-RL and of CEM-RL with the return-routed MultiBuffer (recipes/cem_rl_buffers.py): 80k frames
 #   each, 8 iterations of one 10-member generation (td3.frames_per_iteration=10000), K = 1,000, the
@@ -71,6 +74,14 @@ runs() {  # env row recipe seed [overrides...], one run per line, in the order t
           echo "halfcheetah es_td3_ratio_0.8_0.1_0.1 es_td3.py $seed buffer.ratio=[0.8,0.1,0.1]"
         fi
       done ;;
+    quarter)
+      for env in walker2d halfcheetah; do
+        for seed in 0 1 2 3 4; do
+          echo "$env es_td3 es_td3.py $seed"
+          echo "$env es_td3_shared es_td3.py $seed buffer.mode=shared"
+          echo "$env td3 td3.py $seed"
+        done
+      done ;;
     cem_rl_buffers)
       for seed in 0 1 2 3 4; do
         for env in halfcheetah walker2d; do
@@ -78,7 +89,7 @@ runs() {  # env row recipe seed [overrides...], one run per line, in the order t
           echo "$env cem_rl_buffers cem_rl_buffers.py $seed iterations=8 td3.frames_per_iteration=10000"
         done
       done ;;
-    *) echo "unknown SET=$SET (miniature | multibuffer | cem_rl_buffers)" >&2; return 1 ;;
+    *) echo "unknown SET=$SET (miniature | quarter | multibuffer | cem_rl_buffers)" >&2; return 1 ;;
   esac
 }
 

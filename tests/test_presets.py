@@ -1,5 +1,5 @@
-"""experiment=miniature: the paper's schedule (the schema's defaults, experiment=paper) scaled by one factor,
-checked by composing both with Hydra for every recipe and task of the set."""
+"""experiment=miniature and experiment=quarter: the paper's schedule (the schema's defaults, experiment=paper)
+scaled by one factor, checked by composing both with Hydra for every recipe and task of the sets."""
 from pathlib import Path
 
 import pytest
@@ -17,16 +17,24 @@ def composed(config: str, experiment: str, env: str):
     return cfg
 
 
+# preset -> (its share of the paper's TD3 frames, its g: M / 2,000 rounded half up)
+SCALED = {"miniature": (0.04, 2), "quarter": (0.25, 13)}
+
+
 @pytest.mark.parametrize("env", ["halfcheetah", "walker2d", "swimmer", "ant"])
 @pytest.mark.parametrize("config", ["config", "td3", "es"])
-def test_miniature_scales_the_paper_by_one_factor(config, env):
-    paper, mini = composed(config, "paper", env), composed(config, "miniature", env)
+@pytest.mark.parametrize("preset", sorted(SCALED))
+def test_scaled_presets_scale_the_paper_by_one_factor(preset, config, env):
+    paper, mini = composed(config, "paper", env), composed(config, preset, env)
+    share, generations = SCALED[preset]
     m, paper_m = mini.td3.frames_per_iteration, paper.td3.frames_per_iteration
     factor = m / paper_m
-    assert factor == pytest.approx(0.04) and mini.iterations == paper.iterations == 20
-    # ES frames per iteration scale with g (whole episodes of the same population), so by the same factor
-    assert mini.es.generations_per_iteration / paper.es.generations_per_iteration == pytest.approx(factor)
-    assert mini.es.generations_per_iteration == m // 2000 and mini.buffer.min_size == m // 4  # g = M/2,000, K = M/4
+    assert factor == pytest.approx(share) and mini.iterations == paper.iterations == 20
+    assert mini.experiment_name == preset
+    # ES frames per iteration scale with g (whole episodes of the same population): g = M / 2,000, rounded half up
+    assert mini.es.generations_per_iteration == generations == int(m / 2000 + 0.5)
+    assert mini.es.generations_per_iteration / paper.es.generations_per_iteration == pytest.approx(factor, rel=0.05)  # 13 for 12.5: +4%
+    assert mini.buffer.min_size == m // 4  # K = M/4
     assert mini.buffer.min_size / paper.buffer.min_size == pytest.approx(factor)
     assert mini.td3.random_frames == (mini.buffer.min_size if config == "td3" else 0)  # Fujimoto's warm-up is K frames
     for key in ("es.population_size", "es.antithetic", "es.sigma", "es.lr", "buffer.capacity", "buffer.renormalize", "buffer.ratio",
