@@ -41,6 +41,11 @@ RESUME = [
 WANDB = importlib.util.find_spec("wandb") is not None
 CUDA = torch.cuda.is_available()
 ENV = {**os.environ, "MUJOCO_QUIET": "1", "OMP_NUM_THREADS": "1"}
+# The resume tests run under two thread counts of the process: 1 (ENV), where the run's count differs
+# from the phases' (TD3's threads default to the job's cores), and torch's default for the machine.
+# A quantity whose rounding follows the thread count, computed under another count after a resume,
+# shows as a difference from the uninterrupted run under one of them.
+THREADS = {"1": ENV, "default": {k: v for k, v in ENV.items() if k != "OMP_NUM_THREADS"}}
 
 
 def command(run_dir, *extra, script="es_td3.py"):
@@ -61,9 +66,9 @@ def checkpoints(run_dir):
     return sorted(p.name for p in directory.glob("checkpoint-*")) if directory.exists() else []
 
 
-def start_and_kill(run_dir, ready, delay=0.0, *extra, script="es_td3.py"):
+def start_and_kill(run_dir, ready, delay=0.0, *extra, script="es_td3.py", env=None):
     """Start the recipe, SIGKILL it once ``ready()`` holds (plus ``delay`` seconds)."""
-    process = subprocess.Popen(command(run_dir, *extra, script=script), cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=ENV)
+    process = subprocess.Popen(command(run_dir, *extra, script=script), cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env or ENV)
     try:
         deadline = time.monotonic() + 900
         while not ready() and process.poll() is None and time.monotonic() < deadline:
@@ -304,17 +309,19 @@ BASELINES = [
 
 
 @pytest.mark.e2e
+@pytest.mark.parametrize("threads", list(THREADS))
 @pytest.mark.parametrize("script, extra, first_checkpoint", BASELINES, ids=[b[0] for b in BASELINES])
-def test_baseline_killed_then_resumed_gives_the_same_metrics(tmp_path, script, extra, first_checkpoint):
+def test_baseline_killed_then_resumed_gives_the_same_metrics(tmp_path, script, extra, first_checkpoint, threads):
+    env = THREADS[threads]
     reference = tmp_path / "reference"
-    result = run(reference, *extra, script=script)
+    result = run(reference, *extra, script=script, env=env)
     assert result.returncode == 0, result.stderr[-3000:]
     killed = tmp_path / "killed"
     written = (lambda: first_checkpoint in checkpoints(killed)) if first_checkpoint else (lambda: bool(checkpoints(killed)))
-    returncode = start_and_kill(killed, written, 0.0, *extra, script=script)
+    returncode = start_and_kill(killed, written, 0.0, *extra, script=script, env=env)
     assert returncode == -signal.SIGKILL
     assert len(rows_without_wall_time(killed)) < len(rows_without_wall_time(reference))  # killed mid-run
-    result = run(killed, *extra, script=script)
+    result = run(killed, *extra, script=script, env=env)
     assert result.returncode == 0, result.stderr[-3000:]
     assert rows_without_wall_time(killed) == rows_without_wall_time(reference)
     record = (killed / script.replace(".py", ".log")).read_text()  # the run's record: both pieces, in order
@@ -331,16 +338,17 @@ CONFIGS = {"es_td3.py": "config", "td3.py": "td3", "es.py": "es", "cem_rl.py": "
 
 @pytest.fixture(scope="module")
 def finished(reference, tmp_path_factory):
-    """``finished(script)``: the run directory of a finished run of that recipe (made once)."""
-    runs = {"es_td3.py": reference}
+    """``finished(script, threads="1")``: the run directory of a finished run of that recipe under
+    that thread count of :data:`THREADS` (made once)."""
+    runs = {("es_td3.py", "1"): reference}
 
-    def get(script):
-        if script not in runs:
+    def get(script, threads="1"):
+        if (script, threads) not in runs:
             run_dir = tmp_path_factory.mktemp(script.removesuffix(".py"))
-            result = run(run_dir, *RECIPES[script], script=script)
+            result = run(run_dir, *RECIPES[script], script=script, env=THREADS[threads])
             assert result.returncode == 0, result.stderr[-3000:]
-            runs[script] = run_dir
-        return runs[script]
+            runs[script, threads] = run_dir
+        return runs[script, threads]
 
     return get
 
@@ -446,10 +454,12 @@ STOPS = [("cem_rl.py", 400, "member 2/2"), ("cem_rl_buffers.py", 130, "member 1/
 
 
 @pytest.mark.e2e
+@pytest.mark.parametrize("threads", list(THREADS))
 @pytest.mark.parametrize("script, step, member", STOPS)
-def test_cem_rl_stopped_in_its_gradient_steps_checkpoints_there_and_resumes_to_the_same_records(finished, tmp_path, script, step, member):
+def test_cem_rl_stopped_in_its_gradient_steps_checkpoints_there_and_resumes_to_the_same_records(finished, tmp_path, script, step, member, threads):
+    env = THREADS[threads]
     injected = [sys.executable, str(ROOT / "tests" / "inject_stop.py"), str(step), script, TINY, *RESUME, *RECIPES[script], f"hydra.run.dir={tmp_path}"]
-    stopped = subprocess.run(injected, cwd=ROOT, capture_output=True, text=True, timeout=900, env=ENV)
+    stopped = subprocess.run(injected, cwd=ROOT, capture_output=True, text=True, timeout=900, env=env)
     assert stopped.returncode == 128 + signal.SIGTERM, stopped.stderr[-3000:]
     line = stop_line(stopped.stderr, "SIGTERM")
     assert f", generation under way, {step} gradient steps taken (in CEM-RL's gradient steps, {member})" in line, line
@@ -461,9 +471,13 @@ def test_cem_rl_stopped_in_its_gradient_steps_checkpoints_there_and_resumes_to_t
     cfg = compose_tiny(CONFIGS[script], *RECIPES[script])
     disk = int(subprocess.run(["du", "-s", "--block-size=1", str(tmp_path / "checkpoints" / written)], capture_output=True, text=True, check=True).stdout.split()[0])
     assert disk <= estimate(load_recipe(script).holdings(cfg, env_sizes(cfg.env.id, cfg.env.max_episode_steps))).checkpoint  # its population included
-    result = run(tmp_path, *RECIPES[script], script=script)
+    saved = json.loads(next((tmp_path / "checkpoints" / written).glob("components/*-threads/state.json")).read_text())
+    saved = {key["value"]: value["value"] for key, value in saved["items"]}  # TorchRL's encoding of {"torch": count}
+    if threads == "1":  # the run's count between phases, not the gradient steps' (the job's cores)
+        assert saved == {"torch": 1}, saved
+    result = run(tmp_path, *RECIPES[script], script=script, env=env)
     assert result.returncode == 0, result.stderr[-3000:]
-    reference = finished(script)
+    reference = finished(script, threads)
     assert rows_without_wall_time(tmp_path) == rows_without_wall_time(reference)
     assert summary_without_wall_time(tmp_path) == summary_without_wall_time(reference)
 

@@ -1,10 +1,11 @@
-"""A job's share of the cores (torchrl_esrl/threads.py); the launcher cases run real sweeps in tests/test_launchers.py."""
+"""A job's share of the cores and the run's thread count (torchrl_esrl/threads.py); the launcher cases run real
+sweeps in tests/test_launchers.py, the resumed runs are in tests/test_lifecycle.py."""
 import os
 
 import pytest
 import torch
 
-from torchrl_esrl.threads import JOBS_VARIABLE, concurrent_jobs, job_cores, process_cores, torch_threads
+from torchrl_esrl.threads import JOBS_VARIABLE, RunThreads, concurrent_jobs, job_cores, process_cores, torch_threads
 
 
 @pytest.mark.parametrize("cores", [1, 2, 8, 64])
@@ -42,3 +43,27 @@ def test_torch_threads_restores_the_callers_count():
     with torch_threads(1):
         assert torch.get_num_threads() == 1
     assert torch.get_num_threads() == before
+
+
+@pytest.fixture
+def restores_torch_threads():
+    before = torch.get_num_threads()
+    yield
+    torch.set_num_threads(before)
+
+
+def test_a_checkpoint_written_inside_a_phase_resumes_to_the_runs_count_not_the_phases(restores_torch_threads):
+    """A stop between two gradient steps saves the run's count; the resumed process, started under
+    another count, computes what follows the phase under the uninterrupted run's count."""
+    torch.set_num_threads(3)
+    uninterrupted = RunThreads()
+    with torch_threads(1):  # the phase, stopped here: the checkpoint is written
+        state = uninterrupted.state_dict()
+    assert state == {"torch": 3} and torch.get_num_threads() == 3
+    torch.set_num_threads(2)  # a new process, another default count
+    resumed = RunThreads()
+    resumed.load_state_dict(state)
+    assert torch.get_num_threads() == 3
+    with torch_threads(1):  # the rest of the interrupted phase
+        pass
+    assert torch.get_num_threads() == 3 and resumed.state_dict() == state

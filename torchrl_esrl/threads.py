@@ -3,6 +3,7 @@
 OpenMP's wait policy is fixed when torch loads (libgomp's default, spinning), but torch's intra-op
 thread count can change at any time. Each phase runs with the count that suits its work:
 :func:`torch_threads` sets it for a ``with`` block and restores the caller's afterwards;
+:class:`RunThreads` is the run's own count, the one between its phases, kept with its checkpoint;
 :func:`job_cores` is how many cores a job may use when a launcher or a script runs several at once.
 """
 from __future__ import annotations
@@ -24,6 +25,29 @@ def torch_threads(num_threads: int | None):
         yield
     finally:
         torch.set_num_threads(before)
+
+
+class RunThreads:
+    """The run's torch thread count between its phases, the count every :func:`torch_threads` block
+    returns to: taken when the run starts, saved with its checkpoints (``state_dict``) and set again
+    when one is restored (``load_state_dict``).
+
+    A reduction over many elements (a matrix-vector product, the mean of a long vector) can round
+    differently under another thread count. A checkpoint written inside a phase (a stop between two
+    gradient steps) must therefore hold this count, not the phase's: the resumed process computes
+    what follows the phase under the count the uninterrupted one had there, whatever count the
+    process itself started with.
+    """
+
+    def __init__(self):
+        self.count = torch.get_num_threads()
+
+    def state_dict(self) -> dict:
+        return {"torch": self.count}
+
+    def load_state_dict(self, state: dict) -> None:
+        self.count = int(state["torch"])
+        torch.set_num_threads(self.count)
 
 
 def process_cores() -> int:

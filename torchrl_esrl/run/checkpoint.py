@@ -67,6 +67,7 @@ from torchrl_esrl.errors import CheckpointWriteError, ConfigError
 from torchrl_esrl.data.multibuffer import MultiBuffer
 from torchrl_esrl.run.logger_position import LoggerPosition
 from torchrl_esrl.run.progress import RunProgress
+from torchrl_esrl.threads import RunThreads
 
 CHECKPOINT_DIR = "checkpoints"
 log = logging.getLogger(__name__)  # under torchrl_esrl.run: the run directory's <recipe>.log only
@@ -124,19 +125,6 @@ class DigestAdapter(CheckpointAdapter):
         return None  # checked by unreadable() before any load
 
 
-class _Value:
-    """A value object with state_dict/load_state_dict (for Checkpoint's state-dict adapter)."""
-
-    def __init__(self, get, set_):
-        self._get, self._set = get, set_
-
-    def state_dict(self):
-        return self._get()
-
-    def load_state_dict(self, state):
-        self._set(state)
-
-
 class RunCheckpoint:
     """Saves and restores a whole run of Algorithm 1 in ``<run_dir>/checkpoints``.
 
@@ -161,7 +149,7 @@ class RunCheckpoint:
         parts = {
             "rng": GlobalRNGState(),
             "logger": LoggerPosition(self.run_dir),
-            "threads": _Value(lambda: {"torch": torch.get_num_threads()}, lambda s: torch.set_num_threads(int(s["torch"]))),
+            "threads": RunThreads(),  # the count between phases, not the one of the phase a stop interrupts
             **components,
         }
         self.loaded = sorted(parts)  # what a restore loads: all but the digests

@@ -15,5 +15,5 @@ def seed_everything(seed: int) -> None:
 
 
 def make_deterministic() -> None:
-    """Deterministic CPU kernels (the thread count is part of the checkpoint, see checkpoint.py)."""
+    """Deterministic CPU kernels (the run's thread count between phases is part of the checkpoint: threads.RunThreads)."""
     torch.use_deterministic_algorithms(True, warn_only=True)
