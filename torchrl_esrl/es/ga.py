@@ -30,7 +30,7 @@ The authors' numbers, the defaults here: population 10; elite fraction 0.1 (Half
 offspring; mutation probability 0.9; mutated fraction 0.1, strength 0.1; super mutation 0.05 at
 strength 10; reset 0.05; weight limit 1e6. ERL copies its learner over the member that scored
 lowest (:meth:`GeneticAlgorithm.weakest`, :meth:`GeneticAlgorithm.inject`) every 10 generations
-(every generation on Hopper and Ant); docs/deviations.md.
+(every generation on Hopper and Ant); docs/deviations.md, 42-43.
 """
 from __future__ import annotations
 
