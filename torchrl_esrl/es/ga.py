@@ -152,9 +152,9 @@ class GeneticAlgorithm:
 
     @property
     def champion(self) -> torch.Tensor:
-        """The best member of the last told generation, as evaluated (its elite copy, which no
-        operator changed); row 0 before the first tell."""
-        return self.population[self.champion_row]
+        """The best member of the last told generation, as evaluated (a copy of its elite copy, which
+        no operator changed); row 0 before the first tell."""
+        return self.population[self.champion_row].clone()
 
     @property
     def mean(self) -> torch.Tensor:
