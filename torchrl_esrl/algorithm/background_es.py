@@ -71,7 +71,8 @@ class BackgroundES:
         td3_phase(..., buffer, on_episode=threshold.observe)   # ... while TD3 trains
         generation_returns = background.join()      # iteration boundary: evaluate, overwrite rule
 
-    Between ``start`` and ``join`` the ES object and the ES collector belong to the thread.
+    Between ``start`` and ``join`` the ES object, the ES collector and the phase's population step
+    (which runs in the thread) belong to it.
     """
 
     def __init__(self, work: Callable[[], list[torch.Tensor]]):

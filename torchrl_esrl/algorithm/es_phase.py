@@ -1,4 +1,6 @@
-"""Algorithm 1's ES step: g generations of OpenAI-ES whose offspring trajectories feed the buffers."""
+"""Algorithm 1's ES step: g generations of OpenAI-ES whose offspring trajectories feed the buffers;
+with a population step between ask and evaluation where a recipe needs one (ERL's injection of its
+learner into the GA's population, :meth:`GeneticAlgorithm.inject <torchrl_esrl.es.ga.GeneticAlgorithm.inject>`)."""
 from __future__ import annotations
 
 import functools
@@ -10,6 +12,10 @@ import torch
 from torchrl_esrl.algorithm.background_es import BackgroundES
 from torchrl_esrl.errors import check_finite
 
+# What a recipe may run between ask and evaluation: (population [members, D], es.generation) ->
+# the population to evaluate, or None when it wrote into the one it was given.
+PopulationStep = Callable[[torch.Tensor, int], "torch.Tensor | None"]
+
 
 def es_phase(
     es,
@@ -19,18 +25,26 @@ def es_phase(
     generations: int,
     shared_buffer: bool = False,
     on_generation: Callable[[int], None] | None = None,
+    population_step: PopulationStep | None = None,
 ) -> list[torch.Tensor]:
     """Run ``generations`` generations of ``es`` (any :class:`~torchrl_esrl.es.strategy.EvolutionStrategy`:
-    ask, evaluate one episode each, route, tell).
+    ask, the population step, evaluate one episode each, route, tell).
 
     Each offspring's trajectory goes to ``good`` when its return reaches the threshold, else to
     ``bad`` (offspring by offspring, as Algorithm 1). ``shared_buffer`` is the ERL-style ablation:
     every transition to one buffer (``noisy``), no routing. ``on_generation`` sees the index of
-    each finished generation (progress display). Returns each generation's returns.
+    each finished generation (progress display). ``population_step(population, es.generation)``,
+    when given, gets a copy of each asked population before its evaluation and writes into it, or
+    returns the population to evaluate instead; ``es`` is told that one (OpenAI-ES refuses a changed
+    population: its update reads the noise it asked with). Returns each generation's returns.
     """
     returns = []
     for index in range(generations):
         population = es.ask()
+        if population_step is not None:
+            population = population.clone()  # the step's to change: the strategy keeps what it asked
+            stepped = population_step(population, es.generation)
+            population = population if stepped is None else stepped
         generation = es_collector.evaluate(population, mirrored=es.mirrored(population))
         good = threshold.route(generation.returns)
         if shared_buffer:
@@ -64,14 +78,18 @@ class ESPhase:
     thread, alongside the TD3 phase; inline, nothing yet. ``finish()`` returns their
     :class:`GenerationReturns`: inline, it runs them there; in the background, it waits for them.
     Both halves must use ``self.buffer`` and ``self.threshold``, which are lock-guarded in the
-    background mode (:mod:`~torchrl_esrl.algorithm.background_es`).
+    background mode (:mod:`~torchrl_esrl.algorithm.background_es`). ``population_step`` is
+    :func:`es_phase`'s; in the background it runs in the ES thread while the TD3 phase trains, so it
+    must read what it writes from a copy taken before ``start()`` (a learner's parameters as they
+    stood then), never from the learner in training.
     """
 
-    def __init__(self, es, es_collector, buffer, threshold, generations: int, shared_buffer: bool, background: bool, on_generation: Callable[[int], None] | None = None):
+    def __init__(self, es, es_collector, buffer, threshold, generations: int, shared_buffer: bool, background: bool,
+                 on_generation: Callable[[int], None] | None = None, population_step: PopulationStep | None = None):
         self.background = None
         if background:
             buffer, threshold = BackgroundES.guard(buffer, threshold)
-        run = functools.partial(es_phase, es, es_collector, buffer, threshold, int(generations), bool(shared_buffer), on_generation)
+        run = functools.partial(es_phase, es, es_collector, buffer, threshold, int(generations), bool(shared_buffer), on_generation, population_step)
         if background:
             self.background = BackgroundES(run)
         self.es, self.es_collector, self.buffer, self.threshold, self.run = es, es_collector, buffer, threshold, run

@@ -1,8 +1,12 @@
-"""The ask/tell interface every evolution strategy of the project has (OpenAI-ES, CEM).
+"""The ask/tell interface every evolution strategy of the project has (OpenAI-ES, CEM, ERL's GA).
 
     population = es.ask()                                      # [members, D], one row per member
     generation = es_collector.evaluate(population, mirrored=es.mirrored(population))
     es.tell(population, generation.returns)                    # the returns in the rows' order
+
+Between ask and evaluation a recipe may change members (ERL's injection; the population step of
+:func:`~torchrl_esrl.algorithm.es_phase.es_phase`): ``tell`` takes the population as evaluated, or
+refuses it where its update needs the one it asked (OpenAI-ES).
 
 ``es.mean`` is the search distribution's centre (the policy a recipe returns), ``es.set_mean``
 moves it (the overwrite rule of Algorithm 1), ``es.generation`` counts the tells and
