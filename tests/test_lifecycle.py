@@ -551,6 +551,9 @@ def test_resuming_another_recipes_run_is_refused_in_one_line(finished, tmp_path)
         ("es_td3.py", "buffer.capacity=1000000000000", "buffer.capacity", "of memory"),
         ("es_td3.py", "es.population_size=100000000", "es.population_size", "of memory"),
         ("cem_rl.py", "cem.population_size=100000000", "cem.population_size", "of memory"),
+        # values gymnasium.make takes, which fail only when the env is played (the check resets and steps it)
+        ("es_td3.py", "++env.kwargs.ctrl_cost_weight=abc", "env.kwargs.ctrl_cost_weight", "fails at HalfCheetah-v5's step 1 (TypeError"),
+        ("td3.py", "++env.kwargs.reset_noise_scale=nan", "env.kwargs.reset_noise_scale", "fails at HalfCheetah-v5's reset (OverflowError"),
     ],
 )
 def test_what_the_algorithm_or_this_machine_cannot_take_is_refused_before_any_work(tmp_path, script, override, field, words):
@@ -559,6 +562,22 @@ def test_what_the_algorithm_or_this_machine_cannot_take_is_refused_before_any_wo
     line = one_line(result)
     assert result.returncode == 2 and line.startswith(f"config error: {field}:") and words in line and "allowed" in line, line
     assert not run_dir.exists()  # refused before the run directory is made
+
+
+@pytest.mark.e2e
+def test_an_env_that_ends_its_process_is_refused_in_one_line_and_the_run_it_would_resume_finishes_later(finished, tmp_path):
+    """A wrapper that aborts its process (as a native crash in MuJoCo would) ends the check's child
+    process, not the run's: one line naming the wrapper, and the run directory as it was."""
+    run_dir = killed_after_its_last_checkpoint(finished("es_td3.py"), tmp_path / "run")
+    before = tree(run_dir)
+    tests_first = {**ENV, "PYTHONPATH": os.pathsep.join([str(ROOT / "tests"), ENV.get("PYTHONPATH", "")])}  # tests/native_abort.py
+    result = run(run_dir, "env.wrappers=[{_target_:native_abort.AbortAtStep}]", env=tests_first)
+    line = one_line(result)
+    assert result.returncode == 2 and line.startswith("config error: env.wrappers[0]: native_abort.AbortAtStep ends the process") and "SIGABRT" in line, line
+    assert tree(run_dir) == before
+    result = run(run_dir)
+    assert result.returncode == 0, result.stderr[-3000:]
+    assert summary_without_wall_time(run_dir) == summary_without_wall_time(finished("es_td3.py"))
 
 
 def test_pendulum_takes_the_gym_backend():
