@@ -27,7 +27,7 @@ from typing import Any, NamedTuple
 import gymnasium as gym
 import numpy as np
 import torch
-from torchrl_esrl.errors import ConfigError
+from torchrl_esrl.errors import ConfigError, error_line
 from torchrl.envs import Compose, DoubleToFloat, GymEnv, GymWrapper, RewardSum, StepCounter, TransformedEnv
 
 # Short names used by the Hydra config group ``env``.
@@ -227,7 +227,7 @@ class EnvSpec:
         except ConfigError:
             raise
         except Exception as error:  # noqa: BLE001 - a keyword or wrapper that fails when made, a missing package or asset
-            raise self._refusal(NotPlayable("made", "fails", _raised(error))) from None
+            raise self._refusal(NotPlayable("made", "fails", error_line(error))) from None
         try:
             observation, action, limit = env.observation_space, env.action_space, env.spec.max_episode_steps if env.spec else None
             field_name = "env.wrappers" if self.wrappers else "env.id"
@@ -281,12 +281,12 @@ class EnvSpec:
         except ConfigError:
             raise
         except Exception as error:  # noqa: BLE001 - a transform whose arguments fail with this env
-            raise NotPlayable("made", "fails", _raised(error)) from None
+            raise NotPlayable("made", "fails", error_line(error)) from None
         try:
             return env, env.observation_spec.get("observation", None)
         except Exception as error:  # noqa: BLE001
             env.close()
-            raise NotPlayable("made", "fails", _raised(error)) from None
+            raise NotPlayable("made", "fails", error_line(error)) from None
 
     def play_failure(self) -> "NotPlayable | None":
         """How this spec fails when it is made and played (:func:`_play_gym`, then through TorchRL
@@ -295,7 +295,7 @@ class EnvSpec:
         try:
             env = self.make_gym()
         except Exception as error:  # noqa: BLE001 - whatever making it raises is how it fails
-            return NotPlayable("made", "fails", _raised(error))
+            return NotPlayable("made", "fails", error_line(error))
         try:
             _play_gym(env)
         except NotPlayable as failure:
@@ -382,12 +382,6 @@ def _refused(env_id: str, key: str, entry: str, failure: NotPlayable) -> ConfigE
     return ConfigError(f"{key}: {entry} {failure.what}{where}{detail} (allowed: {allowed})")
 
 
-def _raised(error: BaseException) -> str:
-    """An exception in one line: its type and its message's first line."""
-    text = str(error).strip().splitlines()[0] if str(error).strip() else ""
-    return f"{type(error).__name__}: {text}"[:300] if text else type(error).__name__
-
-
 def _check_played(where: str, env, **values) -> None:
     """:class:`NotPlayable` where one of ``values`` (an observation, a reward) is not finite, or
     where MuJoCo has warned that the simulation of ``env`` is unstable."""
@@ -431,7 +425,7 @@ def _play_gym(env: gym.Env, layers: int = 0) -> tuple[dict, dict]:
     except NotPlayable:
         raise
     except Exception as error:  # noqa: BLE001 - whatever the env raises is how it fails
-        raise NotPlayable(where, "fails", _raised(error)) from None
+        raise NotPlayable(where, "fails", error_line(error)) from None
 
 
 def _play_torchrl(env) -> tuple[dict, dict]:
@@ -454,7 +448,7 @@ def _play_torchrl(env) -> tuple[dict, dict]:
     except NotPlayable:
         raise
     except Exception as error:  # noqa: BLE001
-        raise NotPlayable(where, "fails", _raised(error)) from None
+        raise NotPlayable(where, "fails", error_line(error)) from None
 
 
 def _in_child(function, *args) -> tuple[str, Any]:
