@@ -1,5 +1,7 @@
 """What a run prints (torchrl_esrl/run/console.py): outside a terminal, one plain line per iteration;
-in its run directory's <recipe>.log, the same lines with their times."""
+in its run directory's <recipe>.log, the same lines with their times; on a fresh machine, only the
+project's own lines."""
+import os
 import re
 import subprocess
 
@@ -36,3 +38,18 @@ def test_output_to_a_file_has_one_plain_line_per_iteration(script, tmp_path):
     assert messages[0].startswith("started: ") and ", seed 0, 2 iterations" in messages[0], record[:500]
     assert [m for m in messages if m.startswith("iteration ")] == lines
     assert messages[-1].startswith("finished: ") and "mean return over" in record
+
+
+@pytest.mark.e2e
+def test_a_first_run_on_a_fresh_machine_prints_only_the_projects_lines(tmp_path):
+    """A fresh MPLCONFIGDIR: matplotlib builds its font cache during the run (its INFO record goes to
+    the run's log file, not to the console)."""
+    fresh = tmp_path / "matplotlib"
+    env = {**os.environ, "MPLCONFIGDIR": str(fresh)}
+    result = subprocess.run(recipe_command("es.py", f"hydra.run.dir={tmp_path / 'run'}"), cwd=ROOT, capture_output=True, text=True, timeout=600, env=env)
+    assert result.returncode == 0, result.stderr[-3000:]
+    assert list(fresh.glob("fontlist-*.json"))  # the font cache was built by this run
+    lines = result.stdout.strip().splitlines()
+    assert result.stderr == "" and lines[0].startswith("pieces: ") and lines[1].startswith("es on HalfCheetah-v5, seed 0: 2 iterations"), result.stdout
+    assert not [line for line in lines if re.match(r"^\[[^]]*\]\[[\w.]+\]\[[A-Z]+\]", line)], result.stdout  # no library's log record
+    assert "fontManager" in (tmp_path / "run" / "es.log").read_text()

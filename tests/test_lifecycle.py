@@ -447,6 +447,53 @@ def test_killed_in_the_final_stage_then_rerun_ends_as_an_uninterrupted_run(finis
     assert summary_without_wall_time(tmp_path) == summary_without_wall_time(reference)  # frame counts included
 
 
+FAILS = [("es_td3.py", "figure"), ("td3.py", "figure"), ("es_td3.py", "summary_write"), ("cem_rl.py", "summary_write")]
+
+
+@pytest.mark.e2e
+@pytest.mark.parametrize("script, where", FAILS)
+def test_a_final_stage_that_fails_costs_the_figure_or_ends_in_one_line_and_the_same_command_finishes(finished, tmp_path, script, where):
+    """A figure that raises costs that figure and one warning line, never the summary; a summary
+    that cannot be written ends the run in one line, and a rerun goes straight to the final stage
+    (no iteration again) and ends as the uninterrupted run did."""
+    injected = [sys.executable, str(ROOT / "tests" / "inject_fail.py"), where, script, TINY, *RESUME, *RECIPES[script], f"hydra.run.dir={tmp_path}"]
+    failed = subprocess.run(injected, cwd=ROOT, capture_output=True, text=True, timeout=900, env=ENV)
+    line = one_line(failed)
+    if where == "figure":
+        assert failed.returncode == 0 and line.startswith("warning: learning_curve.png was not drawn (KeyError: 'es_eval_return')"), line
+        assert not (tmp_path / "learning_curve.png").exists()
+    else:
+        assert failed.returncode == 2 and line.startswith(f"disk error: No space left on device writing {tmp_path / 'summary.json'}"), line
+        assert not (tmp_path / "summary.json").exists()
+        result = run(tmp_path, *RECIPES[script], script=script)
+        assert result.returncode == 0, result.stderr[-3000:]
+        record = (tmp_path / script.replace(".py", ".log")).read_text()
+        resumed = record[record.index("] resumed at iteration 3 from "):]
+        assert "] iteration " not in resumed and "] finished: " in resumed, resumed
+    reference = finished(script)
+    assert rows_without_wall_time(tmp_path) == rows_without_wall_time(reference)
+    assert summary_without_wall_time(tmp_path) == summary_without_wall_time(reference)
+
+
+@pytest.mark.e2e
+def test_metrics_cut_before_the_last_checkpoint_is_written_back_and_the_run_finishes(finished, tmp_path):
+    """metrics.csv cut mid-row below what the checkpoint counts (a crash that lost the page cache,
+    a copy cut short): the rerun writes the rows back from the checkpoint's copy, says so in one
+    line, and ends as the uninterrupted run did."""
+    run_dir = killed_after_its_last_checkpoint(finished("es_td3.py"), tmp_path / "run")
+    path = run_dir / "metrics.csv"
+    data = path.read_bytes()
+    path.write_bytes(data[: data.rindex(b"\n", 0, len(data) - 1) + 20])  # the last row cut after 19 bytes
+    with pytest.raises(ValueError, match="line 3 is cut short"):
+        read_metrics(path)
+    result = run(run_dir)
+    assert result.returncode == 0, result.stderr[-3000:]
+    said = [line for line in result.stderr.splitlines() if "written back" in line]
+    assert len(said) == 1 and said[0].startswith(f"metrics.csv in {run_dir} did not begin with the rows checkpoint-"), result.stderr
+    assert path.read_bytes() == data
+    assert summary_without_wall_time(run_dir) == summary_without_wall_time(finished("es_td3.py"))
+
+
 # CEM-RL's second generation takes its gradient steps (F = the first's frames: 4 x 60 and 6 x 60):
 # cem_rl.py 120 critic + 240 actor steps per member of 2, cem_rl_buffers.py 120 + 360 per member of 3.
 # Step 400 is member 2's critic steps; step 130, member 1's actor steps.
@@ -565,6 +612,9 @@ def test_resuming_another_recipes_run_is_refused_in_one_line(finished, tmp_path)
         ("es_td3.py", "buffer.capacity=1000000000000", "buffer.capacity", "of memory"),
         ("es_td3.py", "es.population_size=100000000", "es.population_size", "of memory"),
         ("cem_rl.py", "cem.population_size=100000000", "cem.population_size", "of memory"),
+        # values gymnasium.make takes, which fail only when the env is played (the check resets and steps it)
+        ("es_td3.py", "++env.kwargs.ctrl_cost_weight=abc", "env.kwargs.ctrl_cost_weight", "fails at HalfCheetah-v5's step 1 (TypeError"),
+        ("td3.py", "++env.kwargs.reset_noise_scale=nan", "env.kwargs.reset_noise_scale", "fails at HalfCheetah-v5's reset (OverflowError"),
     ],
 )
 def test_what_the_algorithm_or_this_machine_cannot_take_is_refused_before_any_work(tmp_path, script, override, field, words):
@@ -573,6 +623,22 @@ def test_what_the_algorithm_or_this_machine_cannot_take_is_refused_before_any_wo
     line = one_line(result)
     assert result.returncode == 2 and line.startswith(f"config error: {field}:") and words in line and "allowed" in line, line
     assert not run_dir.exists()  # refused before the run directory is made
+
+
+@pytest.mark.e2e
+def test_an_env_that_ends_its_process_is_refused_in_one_line_and_the_run_it_would_resume_finishes_later(finished, tmp_path):
+    """A wrapper that aborts its process (as a native crash in MuJoCo would) ends the check's child
+    process, not the run's: one line naming the wrapper, and the run directory as it was."""
+    run_dir = killed_after_its_last_checkpoint(finished("es_td3.py"), tmp_path / "run")
+    before = tree(run_dir)
+    tests_first = {**ENV, "PYTHONPATH": os.pathsep.join([str(ROOT / "tests"), ENV.get("PYTHONPATH", "")])}  # tests/native_abort.py
+    result = run(run_dir, "env.wrappers=[{_target_:native_abort.AbortAtStep}]", env=tests_first)
+    line = one_line(result)
+    assert result.returncode == 2 and line.startswith("config error: env.wrappers[0]: native_abort.AbortAtStep ends the process") and "SIGABRT" in line, line
+    assert tree(run_dir) == before
+    result = run(run_dir)
+    assert result.returncode == 0, result.stderr[-3000:]
+    assert summary_without_wall_time(run_dir) == summary_without_wall_time(finished("es_td3.py"))
 
 
 def test_pendulum_takes_the_gym_backend():

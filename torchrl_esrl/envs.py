@@ -6,22 +6,28 @@ in :meth:`EnvSpec.make_torchrl` (float32 observations, episode return and step c
 user's transforms); ES offspring and every evaluation play :meth:`EnvSpec.make_gym` (the same
 gymnasium env and wrappers) through the backends of :mod:`torchrl_esrl.collectors.es_collector`,
 or the TorchRL env itself where the spec has transforms; the networks and buffers are sized by
-:meth:`EnvSpec.sizes`. Names resolve with :func:`resolve_env_id`.
+:meth:`EnvSpec.sizes`, once the env has been made, reset and stepped (before a run, in a child
+process: :meth:`EnvSpec.checked_sizes`), so that a value that fails only when the env is played
+is refused in one line naming its key. Names resolve with :func:`resolve_env_id`.
 """
 from __future__ import annotations
 
 import difflib
 import inspect
 import logging
+import os
+import signal
 import sys
+import warnings
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
+from pathlib import Path
 from typing import Any, NamedTuple
 
 import gymnasium as gym
 import numpy as np
 import torch
-from torchrl_esrl.errors import ConfigError
+from torchrl_esrl.errors import ConfigError, error_line
 from torchrl.envs import Compose, DoubleToFloat, GymEnv, GymWrapper, RewardSum, StepCounter, TransformedEnv
 
 # Short names used by the Hydra config group ``env``.
@@ -212,15 +218,16 @@ class EnvSpec:
 
     def sizes(self) -> EnvSizes:
         """What the networks and buffers are sized by, read off the env every part plays (wrappers
-        included); :class:`ConfigError` where the algorithms cannot take it."""
+        included), once it has been played (:func:`_play_gym`, and through TorchRL where the spec has
+        transforms); :class:`ConfigError` naming the key where the algorithms cannot take it or it
+        cannot be played (:meth:`_refusal`)."""
         quiet_logs()
         try:
             env = self.make_gym()
         except ConfigError:
             raise
-        except Exception as error:  # noqa: BLE001 - a registered id whose package or assets are missing
-            text = str(error).strip().splitlines()[0] if str(error).strip() else ""
-            raise ConfigError(f"env.id: '{self.id}' cannot be made ({type(error).__name__}: {text}) (allowed: {TASKS_ALLOWED})") from None
+        except Exception as error:  # noqa: BLE001 - a keyword or wrapper that fails when made, a missing package or asset
+            raise self._refusal(NotPlayable("made", "fails", error_line(error))) from None
         try:
             observation, action, limit = env.observation_space, env.action_space, env.spec.max_episode_steps if env.spec else None
             field_name = "env.wrappers" if self.wrappers else "env.id"
@@ -228,8 +235,13 @@ class EnvSpec:
                 raise ConfigError(f"{field_name}: '{self.id}' has the action space {action} (allowed: {TASKS_ALLOWED})")
             if not isinstance(observation, gym.spaces.Box) or len(observation.shape) != 1:
                 raise ConfigError(f"{field_name}: '{self.id}' has the observation space {observation} (allowed: {TASKS_ALLOWED})")
-            if self.wrappers:
-                self._check_wrappers(env)
+            try:
+                before, after = _play_gym(env, len(self.wrappers))
+            except NotPlayable as failure:
+                raise self._refusal(failure) from None
+            changed = [key for key in before if before[key] != after.get(key)]
+            if changed:  # the same reset after a few steps must find every wrapper as the first reset left it
+                raise ConfigError(f"env.wrappers: {changed[0]} keeps state from one episode to the next (running statistics), which TD3's env, every ES offspring and every evaluation would each keep apart (allowed: wrappers whose state an episode's reset restores)")
         finally:
             env.close()
         steps = int(self.max_episode_steps) if self.max_episode_steps is not None else limit
@@ -239,41 +251,253 @@ class EnvSpec:
         return EnvSizes(observation_dim, int(action.shape[0]), None if steps is None else int(steps))
 
     def _check_transforms(self) -> int:
-        """The observation size after the user's transforms; :class:`ConfigError` for a transform
-        that keeps state from one episode to the next (running statistics): TD3's env, every ES
-        offspring and every evaluation would each keep a state of their own."""
-        env = self.make_torchrl(seed=0)
+        """The observation size after the user's transforms, once the TorchRL env has been played
+        (:meth:`_play_torchrl`); :class:`ConfigError` for a transform that keeps state from one
+        episode to the next (running statistics): TD3's env, every ES offspring and every
+        evaluation would each keep a state of their own."""
         try:
-            spec = env.observation_spec.get("observation", None)
+            env, spec = self._made_torchrl()
+        except NotPlayable as failure:
+            raise self._refusal(failure) from None
+        try:
             if spec is None or len(spec.shape) != 1:
                 raise ConfigError(f"env.transforms: the observation becomes {spec} (allowed: transforms that keep a flat 'observation')")
-            env.set_seed(0)
-            env.reset()
-            before = _transform_state(env.transform)
-            env.rollout(3, break_when_any_done=False)
-            env.set_seed(0)
-            env.reset()
-            changed = [key for key, value in _transform_state(env.transform).items() if not _same(before.get(key), value)]
+            try:
+                before, after = _play_torchrl(env)
+            except NotPlayable as failure:
+                raise self._refusal(failure) from None
+            changed = [key for key, value in after.items() if not _same(before.get(key), value)]
             if changed:
                 raise ConfigError(f"env.transforms: a transform keeps state from one episode to the next ({changed[0]}: running statistics), which TD3's env, every ES offspring and every evaluation would each keep apart (allowed: transforms whose state an episode's reset restores)")
             return int(spec.shape[0])
         finally:
             env.close()
 
-    def _check_wrappers(self, env: gym.Env) -> None:
-        """:class:`ConfigError` for a wrapper that keeps state from one episode to the next (running
-        statistics, as ``NormalizeObservation``): the same reset after a few steps must find every
-        wrapper as the first reset left it."""
-        env.reset(seed=0)
-        before = _wrapper_state(env, len(self.wrappers))
+    def _made_torchrl(self) -> tuple[TransformedEnv, Any]:
+        """:meth:`make_torchrl` (seed 0) and its observation's spec, which TorchRL computes through
+        the transforms when first read; :class:`NotPlayable` where either raises."""
+        try:
+            env = self.make_torchrl(seed=0)
+        except ConfigError:
+            raise
+        except Exception as error:  # noqa: BLE001 - a transform whose arguments fail with this env
+            raise NotPlayable("made", "fails", error_line(error)) from None
+        try:
+            return env, env.observation_spec.get("observation", None)
+        except Exception as error:  # noqa: BLE001
+            env.close()
+            raise NotPlayable("made", "fails", error_line(error)) from None
+
+    def play_failure(self) -> "NotPlayable | None":
+        """How this spec fails when it is made and played (:func:`_play_gym`, then through TorchRL
+        where it has transforms), or None where it plays."""
+        quiet_logs()
+        try:
+            env = self.make_gym()
+        except Exception as error:  # noqa: BLE001 - whatever making it raises is how it fails
+            return NotPlayable("made", "fails", error_line(error))
+        try:
+            _play_gym(env)
+        except NotPlayable as failure:
+            return failure
+        finally:
+            env.close()
+        if not self.transforms:
+            return None
+        try:
+            env = self._made_torchrl()[0]
+        except NotPlayable as failure:
+            return failure
+        try:
+            _play_torchrl(env)
+        except NotPlayable as failure:
+            return failure
+        finally:
+            env.close()
+        return None
+
+    def parts(self) -> list[tuple[str, str, "EnvSpec"]]:
+        """The spec built up one entry at a time, from the registered task alone to this spec:
+        ``(key, the entry in words, the spec up to that entry)`` for ``env.id``, each keyword
+        argument, each wrapper, each transform, in order."""
+        parts = [("env.id", repr(self.id), EnvSpec(self.id, max_episode_steps=self.max_episode_steps))]
+        for count, (key, value) in enumerate(self.kwargs.items(), 1):
+            parts.append((f"env.kwargs.{key}", repr(value), replace(self, kwargs=dict(list(self.kwargs.items())[:count]), wrappers=(), transforms=())))
+        for index, entry in enumerate(self.wrappers):
+            parts.append((f"env.wrappers[{index}]", _target_name(entry), replace(self, wrappers=self.wrappers[: index + 1], transforms=())))
+        for index, entry in enumerate(self.transforms):
+            parts.append((f"env.transforms[{index}]", _target_name(entry), replace(self, transforms=self.transforms[: index + 1])))
+        return parts
+
+    def _refusal(self, failure: "NotPlayable") -> ConfigError:
+        """The one line of a spec that fails when played: the first entry whose addition makes the
+        env fail (:meth:`parts`, each played alone up to it), and how it fails."""
+        parts = self.parts()
+        for key, entry, spec in parts[:-1]:
+            found = spec.play_failure()
+            if found is not None:
+                return _refused(self.id, key, entry, found)
+        key, entry, _ = parts[-1]
+        return _refused(self.id, key, entry, failure)
+
+    def checked_sizes(self) -> EnvSizes:
+        """:meth:`sizes`, computed in a child process (forked where the platform can, so that it
+        costs the env's making and play, not a new interpreter): an env that ends its process (a
+        native crash in the simulator, a wrapper or a transform) ends the child, and is refused in
+        one line naming the first entry (:meth:`parts`) whose play ends a process too. The child's
+        own output (warnings of a failing env) is not shown."""
+        kind, value = _in_child(EnvSpec.sizes, self)
+        if kind == "returned":
+            return value
+        if kind == "refused":
+            raise ConfigError(value)
+        for key, entry, spec in self.parts():
+            found = _in_child(EnvSpec.play_failure, spec)[1]  # None where it plays, else how it fails or ends
+            if found is not None:
+                raise _refused(self.id, key, entry, found)
+        key, entry, _ = self.parts()[-1]  # every part plays: sizes() alone ends the process
+        raise _refused(self.id, key, entry, value)
+
+
+PLAY_STEPS = 3  # steps of the play before a run: the wrappers' and transforms' state checks compare the resets around them
+UNSTABLE = ("BADQPOS", "BADQVEL", "BADQACC")  # MuJoCo's warnings that its simulation is unstable (it resets the state)
+ALLOWED_PLAY = "values with which {id} resets and steps, its observations and rewards finite"
+
+
+class NotPlayable(Exception):
+    """How an env fails when played: ``where`` (``made``, ``reset``, ``step 1``...; empty where not
+    known), ``what`` it does (``fails``, ``gives a non-finite reward (nan)``) and ``detail`` (the
+    exception raised)."""
+
+    def __init__(self, where: str, what: str, detail: str = ""):
+        super().__init__(where, what, detail)
+        self.where, self.what, self.detail = where, what, detail
+
+
+def _refused(env_id: str, key: str, entry: str, failure: NotPlayable) -> ConfigError:
+    """The one line of the key ``key`` (its value or entry in words, ``entry``) whose env fails when played."""
+    where = f" when {env_id} is made" if failure.where == "made" else f" at {env_id}'s {failure.where}" if failure.where else f" {env_id}"
+    allowed = TASKS_ALLOWED if key == "env.id" else ALLOWED_PLAY.format(id=env_id)
+    detail = f" ({failure.detail})" if failure.detail else ""
+    return ConfigError(f"{key}: {entry} {failure.what}{where}{detail} (allowed: {allowed})")
+
+
+def _check_played(where: str, env, **values) -> None:
+    """:class:`NotPlayable` where one of ``values`` (an observation, a reward) is not finite, or
+    where MuJoCo has warned that the simulation of ``env`` is unstable."""
+    for name, value in values.items():
+        array = np.asarray(value, dtype=np.float64)
+        if not np.isfinite(array).all():
+            raise NotPlayable(where, f"gives a non-finite {name} ({array[~np.isfinite(array)].flat[0]})")
+    data = getattr(getattr(env, "unwrapped", env), "data", None)
+    if data is not None and hasattr(data, "warning"):
+        import mujoco
+
+        for name in UNSTABLE:
+            if data.warning[getattr(mujoco.mjtWarning, f"mjWARN_{name}")].number:
+                raise NotPlayable(where, f"makes MuJoCo's simulation unstable (its warning: NaN, Inf or huge value in {name[3:].lower()})")
+
+
+def _play_gym(env: gym.Env, layers: int = 0) -> tuple[dict, dict]:
+    """Plays a gymnasium env as a run would: reset (seed 0), :data:`PLAY_STEPS` steps of uniform
+    random actions (fewer if the episode ends), reset again (seed 0). :class:`NotPlayable` where a
+    call raises, an observation or a reward is not finite, or MuJoCo finds its simulation
+    unstable. Returns the state of the outer ``layers`` wrappers after each reset."""
+    where = "reset"
+    try:
+        observation, _ = env.reset(seed=0)
+        _check_played(where, env, observation=observation)
+        before = _wrapper_state(env, layers)
         rng, space = np.random.default_rng(0), env.action_space
-        for _ in range(3):
-            env.step(rng.uniform(space.low, space.high).astype(space.dtype))
-        env.reset(seed=0)
-        after = _wrapper_state(env, len(self.wrappers))
-        changed = [key for key in before if before[key] != after.get(key)]
-        if changed:
-            raise ConfigError(f"env.wrappers: {changed[0]} keeps state from one episode to the next (running statistics), which TD3's env, every ES offspring and every evaluation would each keep apart (allowed: wrappers whose state an episode's reset restores)")
+        box = isinstance(space, gym.spaces.Box)
+        low, high = (np.where(np.isfinite(space.low), space.low, -1.0), np.where(np.isfinite(space.high), space.high, 1.0)) if box else (None, None)
+        for step in range(1, PLAY_STEPS + 1):
+            where = f"step {step}"
+            action = rng.uniform(low, high).astype(space.dtype) if box else space.sample()
+            observation, reward, terminated, truncated, _ = env.step(action)
+            _check_played(where, env, observation=observation, reward=reward)
+            if terminated or truncated:
+                break
+        where = "second reset"
+        observation, _ = env.reset(seed=0)
+        _check_played(where, env, observation=observation)
+        return before, _wrapper_state(env, layers)
+    except NotPlayable:
+        raise
+    except Exception as error:  # noqa: BLE001 - whatever the env raises is how it fails
+        raise NotPlayable(where, "fails", error_line(error)) from None
+
+
+def _play_torchrl(env) -> tuple[dict, dict]:
+    """Plays a TorchRL env (the user's transforms included): reset (seed 0), a rollout of
+    :data:`PLAY_STEPS` random steps, reset again (seed 0); :class:`NotPlayable` as
+    :func:`_play_gym`. Returns the transforms' state after each reset."""
+    where = "reset"
+    try:
+        env.set_seed(0)
+        reset = env.reset()
+        _check_played(where, None, observation=reset["observation"])
+        before = _transform_state(env.transform)
+        where = f"first {PLAY_STEPS} steps"
+        rollout = env.rollout(PLAY_STEPS, break_when_any_done=False)
+        _check_played(where, None, observation=rollout["next", "observation"], reward=rollout["next", "reward"])
+        where = "second reset"
+        env.set_seed(0)
+        _check_played(where, None, observation=env.reset()["observation"])
+        return before, _transform_state(env.transform)
+    except NotPlayable:
+        raise
+    except Exception as error:  # noqa: BLE001
+        raise NotPlayable(where, "fails", error_line(error)) from None
+
+
+def _in_child(function, *args) -> tuple[str, Any]:
+    """``function(*args)`` in a child process: ``("returned", its value)``, ``("refused", the
+    line of the ConfigError it raised)``, or ``("ended", NotPlayable)`` where the child ended
+    without a word (a native crash: the signal, and the first line the child printed)."""
+    import multiprocessing
+    import tempfile
+
+    context = multiprocessing.get_context("fork" if "fork" in multiprocessing.get_all_start_methods() else "spawn")
+    receiver, sender = context.Pipe(duplex=False)
+    with tempfile.NamedTemporaryFile(prefix="torchrl_esrl-env-") as output:
+        process = context.Process(target=_child, args=(sender, output.name, function, args), daemon=True)
+        process.start()
+        sender.close()
+        try:
+            kind, value = receiver.recv()
+        except EOFError:
+            kind, value = "ended", None
+        process.join()
+        receiver.close()
+        if kind == "failed":  # not a config error: the check itself failed
+            raise RuntimeError(f"the env check failed in its child process:\n{value}")
+        if kind == "ended":
+            code = process.exitcode
+            how = f"signal {signal.Signals(-code).name if -code in signal.valid_signals() else -code}" if code is not None and code < 0 else f"exit code {code}"
+            printed = next((line.strip() for line in Path(output.name).read_text(errors="replace").splitlines() if line.strip()), "")
+            value = NotPlayable("", "ends the process that plays", f"{how}: {printed}"[:300] if printed else how)
+    return kind, value
+
+
+def _child(sender, output: str, function, args) -> None:
+    """The child of :func:`_in_child`: its output to ``output``, its outcome to ``sender``."""
+    import faulthandler
+    import traceback
+
+    fd = os.open(output, os.O_WRONLY | os.O_APPEND)
+    os.dup2(fd, 1)
+    os.dup2(fd, 2)
+    faulthandler.enable(file=2)  # a native crash's first line: what the parent's one line says
+    warnings.simplefilter("ignore")
+    try:
+        outcome = ("returned", function(*args))
+    except ConfigError as error:
+        outcome = ("refused", str(error))
+    except Exception:  # noqa: BLE001 - sent to the parent, which raises it
+        outcome = ("failed", traceback.format_exc())
+    sender.send(outcome)
+    sender.close()
 
 
 def _wrapper_state(env, layers: int) -> dict:

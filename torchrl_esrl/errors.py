@@ -30,3 +30,9 @@ def check_finite(name: str, value):
     elif not math.isfinite(float(value)):
         raise FloatingPointError(f"{name} is {value}")
     return value
+
+
+def error_line(error: BaseException) -> str:
+    """An exception in one line: its type and the first line of its message."""
+    text = str(error).strip()
+    return f"{type(error).__name__}: {text.splitlines()[0]}"[:300] if text else type(error).__name__

@@ -252,7 +252,7 @@ def plot_es_vs_td3(runs: list[dict], out_dir: Path, algorithms: Algorithms) -> l
         legend_cell = len(group) % MAX_COLUMNS != 0  # a free cell holds the legend
         fig, axes = _grid(len(group) + legend_cell, height=2.5, sharey=True)
         for ax, run in zip(axes, group):
-            draw_es_vs_td3(ax, run)
+            draw_es_vs_td3(ax, run, algorithms.info(algorithm).returned)
             ax.set_title(f"seed {run['summary']['seed']}")
         for ax in axes[::MAX_COLUMNS]:
             ax.set_ylabel("evaluation return")

@@ -18,7 +18,9 @@ subset they have):
   smoothing draw from torch's), TorchRL's :class:`~torchrl.checkpoint.GlobalRNGState`;
 - the loop position (:class:`~torchrl_esrl.run.progress.RunProgress`: iteration, TD3 frames,
   the TD3 phase in progress) and the logger's position
-  (:class:`~torchrl_esrl.run.logger_position.LoggerPosition`).
+  (:class:`~torchrl_esrl.run.logger_position.LoggerPosition`), with a copy of ``metrics.csv``
+  and the csv logger's files, so that rows cut or garbled before the checkpoint (a crash, a full
+  disk) are written back on restore, in one line on stderr.
 
 Files are written by TorchRL's :class:`~torchrl.checkpoint.Checkpoint` (staged in a hidden
 directory, then renamed) under :class:`~torchrl.checkpoint.CheckpointRotation`
@@ -65,7 +67,7 @@ from torchrl.checkpoint import Checkpoint, CheckpointAdapter, CheckpointError, C
 from torchrl_esrl.errors import CheckpointWriteError, ConfigError
 
 from torchrl_esrl.data.multibuffer import MultiBuffer
-from torchrl_esrl.run.logger_position import LoggerPosition
+from torchrl_esrl.run.logger_position import LoggerPosition, MetricsDamaged
 from torchrl_esrl.run.progress import RunProgress
 from torchrl_esrl.threads import RunThreads
 
@@ -146,9 +148,10 @@ class RunCheckpoint:
         self.algorithm = algorithm
         self.components = components
         self.digests = Digests()
+        self.logger_position = LoggerPosition(self.run_dir)
         parts = {
             "rng": GlobalRNGState(),
-            "logger": LoggerPosition(self.run_dir),
+            "logger": self.logger_position,
             "threads": RunThreads(),  # the count between phases, not the one of the phase a stop interrupts
             **components,
         }
@@ -227,15 +230,15 @@ class RunCheckpoint:
             if reason is None:
                 try:
                     self.checkpoint.load(candidate, components=self.loaded)  # every component again from the next one if this fails
-                except CheckpointError as error:
-                    reason = _first_line(error)
+                except CheckpointError as error:  # (MetricsDamaged: the run's rows, not the checkpoint, are damaged)
+                    reason = f"logger: {_first_line(error.__cause__)}" if isinstance(error.__cause__, MetricsDamaged) else _first_line(error)
             if reason is not None:
                 skipped.append((candidate, reason))
                 continue
             for damaged, why in skipped:
-                skip = f"checkpoint {damaged} cannot be read ({why}); resuming from {candidate.name}"
-                log.warning(skip)
-                print(skip, file=sys.stderr, flush=True)
+                _say(f"checkpoint {damaged} cannot be read ({why}); resuming from {candidate.name}")
+            if self.logger_position.rewritten:
+                _say(f"{', '.join(self.logger_position.rewritten)} in {self.run_dir} did not begin with the rows {candidate.name} counts (cut or damaged since); written back from its copy")
             self._last_frames = self.progress.frames_now
             return candidate
         if skipped:
@@ -247,6 +250,12 @@ class RunCheckpoint:
         exception). One run writes here at a time, so any found before it starts are dead."""
         for stage in (self.run_dir / CHECKPOINT_DIR).glob(".*.stage-*"):
             shutil.rmtree(stage, ignore_errors=True)
+
+
+def _say(line: str) -> None:
+    """A line of the restore: in the run's log and on stderr."""
+    log.warning(line)
+    print(line, file=sys.stderr, flush=True)
 
 
 def checkpoint_paths(run_dir: str | Path) -> list[Path]:

@@ -12,7 +12,7 @@ from pathlib import Path
 from omegaconf import DictConfig, OmegaConf
 
 from torchrl_esrl.run.algorithm_info import AlgorithmInfo
-from torchrl_esrl.run.plot import RETURNED_POLICY, TD3_ACTOR
+from torchrl_esrl.run.plot import LEARNER_CURVES, RETURNED_POLICY, TD3_ACTOR
 
 
 def print_config(cfg: DictConfig) -> None:
@@ -23,7 +23,7 @@ def print_config(cfg: DictConfig) -> None:
 
 def returns_text(row: dict, initial_return: float | None) -> str:
     """The returns of a ``metrics.csv`` row in words: the returned policy, then each learner's."""
-    learners = "".join(f", {name} {row[key]:.1f}" for name, key in ((TD3_ACTOR, "td3_eval_return"), ("ES mean", "es_eval_return")) if key in row)
+    learners = "".join(f", {name} {row[key]:.1f}" for key, name, _ in LEARNER_CURVES if key in row)
     initial = f" (initial {initial_return:.1f})" if initial_return is not None else ""
     return f"return {row['eval_return']:.1f}{learners}{initial}"
 

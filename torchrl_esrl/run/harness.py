@@ -16,6 +16,8 @@ Evaluation frames are counted in neither ``td3_frames`` nor ``es_frames``.
 """
 from __future__ import annotations
 
+import logging
+import sys
 import time
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
@@ -25,6 +27,7 @@ import torch
 from omegaconf import DictConfig
 
 from torchrl_esrl.envs import quiet_logs
+from torchrl_esrl.errors import error_line
 from torchrl_esrl.collectors.es_collector import ESCollector
 from torchrl_esrl.modules.networks import flat_parameters
 from torchrl_esrl.run.algorithm_info import AlgorithmInfo
@@ -33,6 +36,9 @@ from torchrl_esrl.run.console import returns_text
 from torchrl_esrl.run.determinism import seed_everything
 from torchrl_esrl.run.factories import make_evaluator
 from torchrl_esrl.run.metrics import MetricsLog, write_json
+
+
+log = logging.getLogger(__name__)  # under torchrl_esrl.run: the run directory's <recipe>.log only
 
 
 def final_episode_seeds(seed: int, episodes: int) -> list[int]:
@@ -123,8 +129,9 @@ class RunHarness:
             self.bar.set_postfix_str(f"{phase}; {self.returns_text}" if self.returns_text else phase)
 
     def finish(self, returned: torch.Tensor, extra: Mapping | None = None, alias: str | None = None) -> dict:
-        """Final evaluation of the returned policy; writes and returns ``summary.json``, the last
-        file a run writes (its presence marks the run finished: a rerun leaves it alone).
+        """Final evaluation of the returned policy; draws ``learning_curve.png`` (a figure that fails
+        costs itself and one warning line, never the summary); writes and returns ``summary.json``,
+        the last file a run writes (its presence marks the run finished: a rerun leaves it alone).
 
         ``alias`` also stores ``final_return`` under a recipe-specific name."""
         cfg = self.cfg
@@ -150,6 +157,11 @@ class RunHarness:
         if self.pieces:
             summary["pieces"] = self.pieces
         summary["wall_time_s"] = self.wall_time_s
-        plot_run(self.run_dir, summary, info=self.info)  # learning_curve.png
+        try:
+            plot_run(self.run_dir, summary, info=self.info)  # learning_curve.png
+        except Exception as error:  # noqa: BLE001 - a figure that fails costs itself, never the summary
+            warning = f"warning: learning_curve.png was not drawn ({error_line(error)}); the run's results are in summary.json and metrics.csv"
+            log.warning(warning)
+            print(warning, file=sys.stderr, flush=True)
         write_json(self.run_dir / "summary.json", summary)  # last, atomically: a run with a summary has finished
         return summary

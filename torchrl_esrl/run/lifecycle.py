@@ -7,7 +7,10 @@ what the run directory holds are checked once, before Hydra writes into the run 
 runs with a :class:`Run` that seeds, makes kernels deterministic, logs, evaluates, checkpoints at
 every iteration boundary and resumes from the run directory's last readable checkpoint. A
 finished run is not run again: one line says where its results are, exit 0. A config error, a
-numerical fault or a checkpoint that cannot be written ends the run with one line on stderr, exit 2.
+numerical fault, or a checkpoint or run file that cannot be written ends the run with one line on
+stderr, exit 2. What follows the last iteration (the final evaluation, the figure, ``summary.json``)
+starts from the last iteration's checkpoint: a rerun of the same command that finds training
+complete goes straight to it, and a figure that fails costs only itself (one warning line).
 A run directory has one writer (:mod:`~torchrl_esrl.run.lock`): a second run that would write it
 is refused the same way, before Hydra writes anything.
 
@@ -196,10 +199,12 @@ def recipe_main(
         except CheckpointWriteError as error:
             _stop(f"checkpoint error: {error}")
         except OSError as error:
-            if error.errno not in (errno.ENOSPC, errno.EFBIG, errno.EDQUOT):
+            full = error.errno in (errno.ENOSPC, errno.EFBIG, errno.EDQUOT)
+            if not full and not _in_run_dir(error.filename, run_dir):
                 raise
-            # on stderr only: the log's file is on the same full disk
-            _exit(f"disk error: {error.strerror} writing {error.filename or run_dir}; run stopped, last good checkpoint kept in {run_dir / CHECKPOINT_DIR}; rerun the same command to resume once there is room")
+            # on stderr only: the log's file may be on the same full disk
+            once = "there is room" if full else "it can be written"
+            _exit(f"disk error: {error.strerror} writing {error.filename or run_dir}; run stopped, last good checkpoint kept in {run_dir / CHECKPOINT_DIR}; rerun the same command to resume once {once}")
         finally:
             stop.uninstall()
             if lock is not None:
@@ -322,6 +327,11 @@ def resume_command(run_dir: Path) -> str:
     if value is not None and not any(a.startswith(f"{key}=") for a in argv):
         argv.append(f"{key}={Path(str(value)).absolute()}")
     return shlex.join(argv)
+
+
+def _in_run_dir(filename, run_dir: Path) -> bool:
+    """Whether ``filename`` (an OSError's) is a file of the run directory (its summary, figure, metrics)."""
+    return filename is not None and Path(os.fsdecode(filename)).absolute().is_relative_to(Path(run_dir).absolute())
 
 
 def _exit(message: str) -> None:

@@ -7,6 +7,7 @@ TorchRL logger chosen in the config (csv by default, tensorboard or wandb when i
 from __future__ import annotations
 
 import csv
+import io
 import json
 import math
 from collections.abc import Mapping
@@ -63,12 +64,39 @@ class MetricsLog:
 
 
 def read_metrics(path: str | Path) -> list[dict]:
-    """Rows of a ``metrics.csv`` with numbers parsed."""
-    rows = []
-    with Path(path).open() as handle:
-        for row in csv.DictReader(handle):
-            rows.append({key: _number(value) for key, value in row.items()})
-    return rows
+    """Rows of a ``metrics.csv`` with numbers parsed; a :class:`ValueError` naming the file and the
+    line where the file is not whole rows (:func:`damage`: cut by a kill or a full disk, garbled)."""
+    path = Path(path)
+    data = path.read_bytes()
+    wrong = damage(data)
+    if wrong is not None:
+        raise ValueError(f"{path} is damaged: {wrong}")
+    return [{key: _number(value) for key, value in row.items()} for row in csv.DictReader(io.StringIO(data.decode(), newline=""))]
+
+
+def damage(data: bytes) -> str | None:
+    """Where ``data``, the bytes of a ``metrics.csv``, is not a header and whole rows, in words
+    (a line cut short, a line with more or fewer fields than the header, a NUL byte, bytes that are
+    not text); None where it is whole."""
+    if not data:
+        return None
+    if b"\0" in data:
+        return f"line {_line_of(data, data.index(0))} holds a NUL byte"
+    if not data.endswith(b"\n"):
+        return f"line {_line_of(data, len(data))} is cut short (no line end)"
+    try:
+        lines = list(csv.reader(io.StringIO(data.decode(), newline="")))
+    except (UnicodeDecodeError, csv.Error) as error:
+        return f"it does not parse as CSV ({error})"
+    for number, fields in enumerate(lines[1:], 2):
+        if len(fields) != len(lines[0]):
+            return f"line {number} has {len(fields)} field{'' if len(fields) == 1 else 's'}, the header {len(lines[0])}"
+    return None
+
+
+def _line_of(data: bytes, offset: int) -> int:
+    """The number (from 1) of the line of ``data`` that holds byte ``offset``."""
+    return data.count(b"\n", 0, offset) + 1
 
 
 def _number(value: str):

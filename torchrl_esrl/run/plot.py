@@ -56,19 +56,24 @@ def save_figure(fig, path: Path) -> Path:
     return path
 
 
+# The learners a run may evaluate beside the policy it returns: their metrics column, name and marker.
+LEARNER_CURVES = (("td3_eval_return", TD3_ACTOR, "o"), ("es_eval_return", "ES mean", "s"))
+
+
 def draw_es_vs_td3(ax, run: dict, returned: str = RETURNED_POLICY) -> None:
-    """One run's panel: TD3 actor and ES mean per iteration (a run whose metrics have both; any other:
-    the returned policy, named ``returned``), the initial policy's return if recorded, overwrites as
-    red dashed lines."""
+    """One run's panel: each learner's evaluation its metrics log (TD3 actor, ES mean) and the
+    returned policy's (named ``returned``), unless a learner's curve is that policy's; the initial
+    policy's return if recorded, overwrites as red dashed lines."""
     from matplotlib.ticker import MaxNLocator
 
     rows, summary = run["metrics"], run["summary"]
     iterations = [row["iteration"] for row in rows]
-    if "td3_eval_return" in rows[0]:
-        ax.plot(iterations, [row["td3_eval_return"] for row in rows], marker="o", markersize=3, label=TD3_ACTOR)
-        ax.plot(iterations, [row["es_eval_return"] for row in rows], marker="s", markersize=3, label="ES mean")
-    else:
-        ax.plot(iterations, [row["eval_return"] for row in rows], marker="o", markersize=3, label=returned)
+    logged = set(rows[0]) if rows else set()
+    curves = [curve for curve in LEARNER_CURVES if curve[0] in logged]
+    if returned not in {name for _, name, _ in curves}:
+        curves.append(("eval_return", returned, "o" if not curves else "D"))
+    for column, name, marker in curves:
+        ax.plot(iterations, [row[column] for row in rows], marker=marker, markersize=3, label=name)
     if summary.get("initial_return") is not None:
         ax.axhline(summary["initial_return"], color="grey", linestyle=":", label="initial policy")
     overwritten = [row["iteration"] for row in rows if row.get("overwritten") is True]

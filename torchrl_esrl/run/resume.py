@@ -18,7 +18,7 @@ from pathlib import Path
 from omegaconf import DictConfig, OmegaConf
 from torchrl.checkpoint import Checkpoint
 
-from torchrl_esrl.envs import EnvSizes, EnvSpec, env_sizes, resolve_env_id
+from torchrl_esrl.envs import EnvSizes, EnvSpec, resolve_env_id
 from torchrl_esrl.errors import ConfigError
 from torchrl_esrl.run.algorithm_info import AlgorithmInfo
 from torchrl_esrl.run.capacity import Holding, check_capacity, estimate
@@ -166,7 +166,7 @@ def prepare_run(
         cfg = OmegaConf.create(saved)
     validate_config(cfg)
     name = algorithm_of(algorithm, cfg).name if algorithm is not None else None
-    sizes = env_sizes(EnvSpec.from_config(cfg.env))  # refuses tasks (keywords, wrappers, transforms) the algorithms cannot take
+    sizes = EnvSpec.from_config(cfg.env).checked_sizes()  # the env played in a child process: refuses what the algorithms cannot take or it cannot play
     _check_identity(field, run_dir, name, resolve_env_id(cfg.env.id), metadata, summary)
     if saved is not None and not resume:
         before, now = _flatten({k: v for k, v in saved.items() if k not in IGNORED_ON_RESUME}), _flatten({k: v for k, v in current.items() if k not in IGNORED_ON_RESUME})
