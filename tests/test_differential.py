@@ -21,6 +21,7 @@ A new change is one line of :data:`CASES`.
 """
 from __future__ import annotations
 
+import contextlib
 import copy
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -78,10 +79,12 @@ class Case:
     the built networks before TD3 is made; ``td3(cfg, actor, critic, action_spec)`` builds TD3
     instead of ``make_td3``; ``batch(batch)`` edits the batch the updates train on. ``given``:
     overrides of the unchanged run the change is compared with (where the change only shows under
-    another setting); ``reaches``: the parts whose reference outputs the change must alter;
-    ``pieces``: what the fast run must compute some pieces with (``{"td3_loss": "fast"}``: the
-    change is trained through the hand-written gradients, not handed over); ``tolerance``: (rtol, atol)
-    per part where the change itself rounds coarser than float32 (``td3.precision=bf16``)."""
+    another setting); ``around()``: a context both implementations' runs are made in (torch's
+    global module hooks, removed after the row); ``reaches``: the parts whose reference outputs
+    the change must alter; ``pieces``: what the fast run must compute some pieces with
+    (``{"td3_loss": "fast"}``: the change is trained through the hand-written gradients, not
+    handed over); ``tolerance``: (rtol, atol) per part where the change itself rounds coarser than
+    float32 (``td3.precision=bf16``)."""
 
     id: str
     overrides: tuple[str, ...] = ()
@@ -90,13 +93,83 @@ class Case:
     networks: Callable | None = None
     td3: Callable | None = None
     batch: Callable | None = None
+    around: Callable | None = None
     reaches: tuple[str, ...] = ENV_PARTS
     pieces: dict[str, str] = field(default_factory=dict)
     tolerance: dict[str, tuple[float, float]] = field(default_factory=dict)
 
     @property
     def changed(self) -> bool:
-        return bool(self.overrides or self.networks or self.td3 or self.batch)
+        return bool(self.overrides or self.networks or self.td3 or self.batch or self.around)
+
+
+def actor_edit(edit: Callable[[nn.Module], None]):
+    """A ``Case.networks`` that applies ``edit`` to the actor's MLP (``actor[0].module``)."""
+
+    def networks(actor, critic):
+        edit(actor[0].module)
+        return actor, critic
+
+    return networks
+
+
+def every_second_unit_zeroed(gradient):
+    """A gradient with every second unit of its last dimension zeroed (Adam undoes a constant scale)."""
+    return None if gradient is None else gradient * (torch.arange(gradient.shape[-1]) % 2)
+
+
+def halved_linear_output(module, args, output):
+    """A forward hook: the output of an ``nn.Linear`` halved (other modules untouched)."""
+    return output * 0.5 if type(module) is nn.Linear else None
+
+
+def doubled_linear_input(module, args):
+    """A forward pre-hook: the input of an ``nn.Linear`` doubled."""
+    return (args[0] * 2,) if type(module) is nn.Linear else None
+
+
+def masked_linear_input_gradient(module, grad_input, grad_output):
+    """A full backward hook: the gradient an ``nn.Linear`` passes to its input, every second unit zeroed."""
+    return tuple(every_second_unit_zeroed(g) for g in grad_input) if type(module) is nn.Linear else None
+
+
+def masked_linear_output_gradient(module, grad_output):
+    """A full backward pre-hook: the gradient of an ``nn.Linear``'s output, every second unit zeroed."""
+    return tuple(every_second_unit_zeroed(g) for g in grad_output) if type(module) is nn.Linear else None
+
+
+def global_hook(register: Callable, hook: Callable):
+    """A ``Case.around``: ``hook`` registered with torch's ``register`` (a global module hook) for the row."""
+
+    @contextlib.contextmanager
+    def around():
+        handle = register(hook)
+        try:
+            yield
+        finally:
+            handle.remove()
+
+    return around
+
+
+class Halved(nn.Module):
+    """A parametrization: the parameter halved."""
+
+    def forward(self, weight):
+        return weight * 0.5
+
+
+def dropout_after_first_activation(mlp):
+    mlp.insert(2, nn.Dropout(0.1))
+
+
+def rrelu_after_first_linear(mlp):
+    mlp[1] = nn.RReLU()  # random slopes in training mode
+
+
+def scale_buffer(mlp):
+    """A buffer on the first Linear that no forward reads."""
+    mlp[0].register_buffer("scale", torch.full((mlp[0].out_features,), 2.0))
 
 
 # ---------------------------------------------------------------------------- component edits
@@ -271,6 +344,8 @@ TRANSFORMS = [
     transforms("ClipTransform", "{_target_:torchrl.envs.ClipTransform,in_keys:[observation],low:-1.0,high:1.0}"),
     transforms("StepCounter", "{_target_:torchrl.envs.StepCounter,max_steps:30}"),
     transforms("RewardClipping", "{_target_:torchrl.envs.RewardClipping,clamp_min:-0.02,clamp_max:0.02}"),
+    # a frame stack: its state is an episode's own, which every env that plays the task keeps for itself
+    transforms("CatFrames", "{_target_:torchrl.envs.CatFrames,N:2,dim:-1,in_keys:[observation]}"),
 ]
 
 NETWORKS = [
@@ -280,6 +355,50 @@ NETWORKS = [
     Case("actor-hidden-32", ("actor.hidden=[32]",), reaches=ACTOR_PARTS),
     Case("critic-hidden-64-32", ("td3.critic_hidden=[64,32]",), reaches=LOSS_PARTS),
     Case("critic-tanh", ("td3.critic_activation=tanh",), reaches=LOSS_PARTS),
+]
+
+# What the actor computes beside its layers' classes: hooks of every kind (the module's own, torch's
+# global ones), parametrizations, random layers in training mode, buffers. The batched forward and
+# the TD3 collector hand over where the actor computes more than its Linear layers, tanh and
+# TanhModule; the ES physics plays the module in worker threads, so it hands over where the
+# actor's forward is not a deterministic function of its observation. Backward hooks do not run
+# in a forward without gradient: only the loss hands over, the forwards stay fast.
+def handed_over(reason: str, physics: str = "fast") -> dict[str, str]:
+    """The pieces of a row whose actor computes more than its layers: the forwards and the loss hand
+    over with ``reason``; the ES physics plays the module in its worker threads, or hands over."""
+    return {piece: f"reference ({reason})" for piece in ("es_forward", "td3_collector", "td3_loss")} | {"es_physics": physics}
+
+
+ORDER = "and the worker threads play members in an order that differs from run to run"
+RANDOM = f"reference (actor: its forward draws random numbers, {ORDER})"
+STATEFUL = f"reference (actor: two calls on the same observation give different actions, {ORDER})"
+PARAMETRIZED = "actor MLP: 0: a parametrization of its weight (torch.nn.utils.parametrize)"
+BACKWARD_HANDED = {"es_forward": "fast", "td3_collector": "fast", "td3_loss": "reference (module hooks)", "es_physics": "fast"}
+ACTOR_EXTRAS = [
+    Case("actor-forward-hook", networks=actor_edit(lambda mlp: mlp.register_forward_hook(lambda m, args, out: out * 0.5)), reaches=ACTOR_PARTS,
+         pieces=handed_over("a forward hook on module.0.module")),
+    Case("actor-forward-pre-hook", networks=actor_edit(lambda mlp: mlp.register_forward_pre_hook(lambda m, args: (args[0] * 2,))), reaches=ACTOR_PARTS,
+         pieces=handed_over("a forward pre hook on module.0.module")),
+    Case("actor-backward-hook", networks=actor_edit(lambda mlp: mlp[2].register_full_backward_hook(masked_linear_input_gradient)), reaches=LOSS_PARTS, pieces=BACKWARD_HANDED),
+    Case("actor-backward-pre-hook", networks=actor_edit(lambda mlp: mlp[2].register_full_backward_pre_hook(masked_linear_output_gradient)), reaches=LOSS_PARTS, pieces=BACKWARD_HANDED),
+    Case("global-forward-hook", around=global_hook(torch.nn.modules.module.register_module_forward_hook, halved_linear_output), reaches=ACTOR_PARTS,
+         pieces=handed_over("torch's global forward hooks")),
+    Case("global-forward-pre-hook", around=global_hook(torch.nn.modules.module.register_module_forward_pre_hook, doubled_linear_input), reaches=ACTOR_PARTS,
+         pieces=handed_over("torch's global forward pre hooks")),
+    Case("global-backward-hook", around=global_hook(torch.nn.modules.module.register_module_full_backward_hook, masked_linear_input_gradient), reaches=LOSS_PARTS, pieces=BACKWARD_HANDED),
+    # spectral_norm computes the weight in a forward pre-hook, and its power iteration updates its buffers at every call in training mode
+    Case("actor-spectral-norm", networks=actor_edit(lambda mlp: torch.nn.utils.spectral_norm(mlp[0])), reaches=ACTOR_PARTS,
+         pieces=handed_over("a forward pre hook on module.0.module.0", STATEFUL)),
+    Case("actor-parametrize", networks=actor_edit(lambda mlp: torch.nn.utils.parametrize.register_parametrization(mlp[0], "weight", Halved())), reaches=ACTOR_PARTS,
+         pieces=handed_over(PARAMETRIZED)),
+    Case("actor-parametrizations-spectral-norm", networks=actor_edit(lambda mlp: torch.nn.utils.parametrizations.spectral_norm(mlp[0])), reaches=ACTOR_PARTS,
+         pieces=handed_over(PARAMETRIZED, STATEFUL)),
+    Case("actor-dropout", networks=actor_edit(dropout_after_first_activation), reaches=ACTOR_PARTS,
+         pieces=handed_over("actor MLP: Dropout (the fast pieces compute Linear, Tanh, ReLU)", RANDOM)),
+    Case("actor-rrelu", networks=actor_edit(rrelu_after_first_linear), reaches=ACTOR_PARTS,
+         pieces=handed_over("actor MLP: RReLU (the fast pieces compute Linear, Tanh, ReLU)", RANDOM)),
+    # no forward reads it: every piece computes the same
+    Case("actor-buffer", networks=actor_edit(scale_buffer), reaches=(), pieces={piece: "fast" for piece in ("es_forward", "td3_collector", "td3_loss", "es_physics")}),
 ]
 
 LOSSES = [
@@ -312,7 +431,7 @@ BACKWARD = [
     Case("critic-frozen-layer", td3=td3_edited(freeze_critic_layer), reaches=LOSS_PARTS, pieces=MANUAL_GRADIENTS),
 ]
 
-CASES = [*BASE, *ENV_KWARGS, *WRAPPERS, *TRANSFORMS, *NETWORKS, *LOSSES, *BACKWARD]
+CASES = [*BASE, *ENV_KWARGS, *WRAPPERS, *TRANSFORMS, *NETWORKS, *ACTOR_EXTRAS, *LOSSES, *BACKWARD]
 
 
 # ---------------------------------------------------------------------------- running a row
@@ -500,10 +619,22 @@ def differs(a: dict, b: dict) -> bool:
 # ---------------------------------------------------------------------------- the tests
 @pytest.mark.parametrize("case", CASES, ids=lambda case: case.id)
 def test_fast_computes_what_the_reference_does_or_hands_over(case):
+    with case.around() if case.around is not None else contextlib.nullcontext():
+        reference = fast_against_reference(case)
+    if not case.changed:
+        return
+    base = unchanged(case)
+    untouched = [part for part in case.reaches if not differs(reference.outputs[part], base[part])]
+    assert not untouched, f"{case.id}: the reference's {untouched} are those of the unchanged run: the change did not reach them"
+
+
+def fast_against_reference(case: Case):
+    """The row's two runs, part by part (see the module's docstring); the reference's run."""
     reference, fast = run_row(case, (*case.given, *case.overrides))
     assert set(reference.pieces.values()) == {"reference"} and reference.evaluation_forward == "reference"
     assert set(fast.pieces) == set(factories.FAST_PIECES)
     assert {piece: fast.pieces[piece] for piece in case.pieces} == case.pieces, fast.pieces
+    assert all(what == "fast" or what.startswith("reference (") for what in fast.pieces.values()), f"a hand-over without its reason: {fast.pieces}"
     largest = {}
     for part, pieces in PARTS.items():
         what = [fast.evaluation_forward] if part == "evaluation" else [fast.pieces[piece] for piece in pieces]
@@ -519,10 +650,7 @@ def test_fast_computes_what_the_reference_does_or_hands_over(case):
         _UNCHANGED.setdefault((case.env, case.given), reference.outputs)
         if not case.given:  # the registered tasks, as gymnasium defines them: every piece is fast
             assert set(fast.pieces.values()) == {"fast"} and fast.evaluation_forward == "fast", fast.pieces
-        return
-    base = unchanged(case)
-    untouched = [part for part in case.reaches if not differs(reference.outputs[part], base[part])]
-    assert not untouched, f"{case.id}: the reference's {untouched} are those of the unchanged run: the change did not reach them"
+    return reference
 
 
 # Changes no run can take: a one-line ConfigError at start-up (EnvSpec.sizes(), the run's check).
@@ -533,6 +661,8 @@ REFUSED = [
     pytest.param("env.wrappers=[{_target_:gymnasium.wrappers.ClipAction}]", "env.wrappers:", id="wrapper-ClipAction"),
     # NormalizeObservation keeps running statistics across episodes, as VecNorm does.
     pytest.param("env.wrappers=[{_target_:gymnasium.wrappers.NormalizeObservation}]", "env.wrappers: NormalizeObservation", id="wrapper-NormalizeObservation"),
+    # the time limit twice, with two values (env.max_episode_steps=50 in every row): neither would win silently
+    pytest.param("++env.kwargs.max_episode_steps=37", "env.kwargs.max_episode_steps: 37 and env.max_episode_steps: 50", id="kwargs-max_episode_steps-twice"),
 ]
 
 

@@ -87,6 +87,65 @@ def test_fast_es_evaluation_gives_the_reference_returns_over_the_first_steps(kin
         observation = gym_env.step(action.numpy())[0]
 
 
+def _dropout_actor(env, p: float = 0.2):
+    """A Hopper actor with dropout after its first activation (in training mode, as built)."""
+    actor = _actor(env, "tanh")
+    actor[0].module.insert(2, nn.Dropout(p))
+    return actor
+
+
+def test_a_random_actor_never_plays_in_the_batched_physics_and_one_seed_gives_one_generation():
+    """The batched physics plays members in worker threads, in an order that differs from run to
+    run: an actor that draws random numbers (dropout in training mode) is refused there in one
+    line, ``auto`` and the factory give the gym reference (with the reason in the pieces line),
+    and the same seed gives the same generation twice. A deterministic module (ELU) still plays there."""
+    from torchrl_esrl.collectors.mujoco_batch import MujocoBatchBackend
+    from torchrl_esrl.errors import ConfigError
+    from torchrl_esrl.run import factories
+
+    env = make_env("hopper")
+    actor = _dropout_actor(env)
+    assert es_population(actor, FAST_PIECES) is ModulePopulation
+    with pytest.raises(ValueError) as error:
+        MujocoBatchBackend("hopper", ModulePopulation(actor), nthread=1, workers=1)
+    assert "\n" not in str(error.value) and "draws random numbers" in str(error.value)
+    assert ESCollector("hopper", actor, backend="auto", population=ModulePopulation).backend.name == "gym"
+    with pytest.raises(ConfigError) as error:
+        ESCollector("hopper", actor, backend="mujoco_batch", population=ModulePopulation)
+    assert "\n" not in str(error.value) and str(error.value).startswith("es.backend: mujoco_batch cannot play this actor")
+    cfg = OmegaConf.create({"implementation": "fast", "seed": 0, "env": {"id": "hopper", "max_episode_steps": 5}, "es": {"backend": "auto"}})
+    collector = factories.make_es_collector(cfg, actor)
+    assert collector.backend.name == "gym"
+    assert factories.implementations(cfg, es_collector=collector)["es_physics"].startswith("reference (actor: its forward draws random numbers")
+    params = flat_parameters(actor).expand(4, -1)
+    generations = []
+    for _ in range(2):
+        torch.manual_seed(7)
+        generations.append(collector.evaluate(params, [5, 5, 5, 5]))  # one actor, one start: the dropout alone tells the members apart
+    assert torch.equal(generations[0].returns, generations[1].returns) and len(set(generations[0].returns.tolist())) > 1  # random, and reproduced
+    deterministic = _actor(env, "elu")
+    assert ESCollector("hopper", deterministic, backend="auto", population=ModulePopulation).backend.name == "mujoco_batch"
+
+
+def test_each_fast_forward_refuses_a_hooked_actor_in_one_line():
+    """A forward hook changes what the actor computes: the batched ES forward and the TD3 collector
+    refuse it in one line naming the hook; the factories hand over to the references."""
+    env = make_env("hopper", seed=0, max_episode_steps=20)
+    actor = _actor(env, "tanh")
+    actor[0].module.register_forward_hook(lambda module, args, output: output * 0.5)
+    with pytest.raises(ValueError) as error:
+        PopulationActor(actor)
+    assert "\n" not in str(error.value) and "a forward hook on module.0.module" in str(error.value)
+    assert es_population(actor, FAST_PIECES) is ModulePopulation
+    td3 = make_td3(_config(), actor, make_critic(11, 3, (32, 32)), env.action_spec)
+    with pytest.raises(ValueError) as error:
+        GymTD3Collector(env, td3, 5)
+    assert "\n" not in str(error.value) and "a forward hook on module.0.module" in str(error.value)
+    collector, _ = make_frame_batches(_config(), env, td3)
+    assert type(collector).__name__ == "Collector"
+    collector.shutdown()
+
+
 # ---------------------------------------------------------------------------- TD3 acting
 def test_gym_td3_collector_refuses_another_transform_and_the_factory_hands_over():
     """A transform added to the TD3 env: GymTD3Collector (which reproduces make_env's transforms)

@@ -144,3 +144,115 @@ def test_one_blas_thread_holds_numpy_blas_at_one_thread_and_restores_it():
     with one_blas_thread():
         assert all(n == 1 for n in openblas_threads())
     assert openblas_threads() == before
+
+
+@pytest.mark.parametrize("observation_dim", [1, 17, 18, 105, 348])
+def test_population_actor_equals_the_module_per_step_for_any_observation_width(observation_dim):
+    """The batched forward, over the flat rows and over mirrored pairs, gives every member the
+    actions of the actor module loaded with its parameters up to float32 rounding, whatever the
+    observation's width (HalfCheetah's 17, 18 with its x position, Ant's 105, Humanoid's 348).
+    Returns of whole episodes can differ by more: a step's rounding grows in closed loop."""
+    actor = make_actor(observation_dim, make_env("halfcheetah").action_spec)
+    center = flat_parameters(actor)
+    offsets = 0.05 * torch.randn(3, center.numel(), generator=torch.Generator().manual_seed(1))
+    params = torch.cat([center + offsets, center - offsets])
+    observations = 3 * torch.randn(6, observation_dim, generator=torch.Generator().manual_seed(2))
+    policy = PopulationActor(actor)
+    flat = policy(params, observations)
+    with one_blas_thread():
+        pairs = torch.from_numpy(policy.mirrored(*policy.split_pairs(Mirrored(center, offsets)), observations.numpy().reshape(2, 3, -1)).reshape(6, -1))
+    member = copy.deepcopy(actor)
+    for p in range(6):
+        load_flat_parameters(member, params[p].clone())
+        with torch.no_grad():
+            expected = member(TensorDict(observation=observations[p : p + 1], batch_size=[1]))["action"]
+        torch.testing.assert_close(flat[p : p + 1], expected, rtol=1e-5, atol=1e-6)
+        torch.testing.assert_close(pairs[p : p + 1], expected, rtol=1e-5, atol=1e-6)
+
+
+def _hooked(edit):
+    actor = make_actor(3, make_env("pendulum").action_spec, (8, 8))
+    edit(actor)
+    return actor
+
+
+def test_describe_actor_says_what_runs_beside_the_layers_classes():
+    """Hooks that run in a forward, a forward set on an instance, parametrizations and parameters
+    that are not the Linear layers' are refused by name; buffers and backward hooks (which a
+    forward without gradient does not run) are not."""
+    from torch.nn.modules import module as torch_module
+
+    refused = {
+        "a forward hook on module.0.module": lambda a: a[0].module.register_forward_hook(lambda m, args, out: out),
+        "a forward pre hook on module.0.module.2": lambda a: a[0].module[2].register_forward_pre_hook(lambda m, args: None),
+        "a forward pre hook on module.0.module.0": lambda a: torch.nn.utils.spectral_norm(a[0].module[0]),
+        "a forward set on the instance module.1": lambda a: setattr(a[1], "forward", a[1].forward),
+        "actor MLP: 0: a parametrization of its weight (torch.nn.utils.parametrize)": lambda a: torch.nn.utils.parametrizations.weight_norm(a[0].module[0]),
+        "actor parameters other than its Linear layers' weights and biases (module.1.scale)": lambda a: a[1].register_parameter("scale", nn.Parameter(torch.ones(1))),
+    }
+    for reason, edit in refused.items():
+        assert describe_actor(_hooked(edit)) == reason
+    kept = [
+        lambda a: a[0].module[0].register_buffer("scale", torch.ones(8)),
+        lambda a: a[0].module[2].register_full_backward_hook(lambda m, grad_input, grad_output: None),
+        lambda a: a[0].module.register_full_backward_pre_hook(lambda m, grad_output: None),
+    ]
+    for edit in kept:
+        assert not isinstance(describe_actor(_hooked(edit)), str)
+    for register, hook, reason in (
+        (torch_module.register_module_forward_hook, lambda m, args, out: None, "torch's global forward hooks"),
+        (torch_module.register_module_forward_pre_hook, lambda m, args: None, "torch's global forward pre hooks"),
+    ):
+        handle = register(hook)
+        try:
+            assert describe_actor(_hooked(lambda a: None)) == reason
+        finally:
+            handle.remove()
+    assert PopulationActor.refusal(_hooked(lambda a: None)) is None
+
+
+def test_own_actions_finds_what_is_not_a_function_of_the_observation_and_changes_nothing():
+    """The probe calls a copy of the actor twice: random draws, calls that differ and a state the
+    forward changes are named; the actor, its buffers and the global generators stay as they were."""
+    import random
+
+    from torchrl_esrl.modules.networks import nondeterminism, own_actions, probe_observations
+
+    def count(module, args):
+        module.calls.add_(1)
+
+    def counting(actor):
+        actor[0].module.register_buffer("calls", torch.zeros(()))
+        actor[0].module.register_forward_pre_hook(count)
+
+    cases = {
+        "its forward draws random numbers": lambda a: a[0].module.insert(2, nn.Dropout(0.5)),
+        "two calls on the same observation give different actions": lambda a: torch.nn.utils.spectral_norm(a[0].module[0]),
+        "its forward changes module.0.module.calls": counting,
+        None: lambda a: a[0].module.insert(2, nn.Dropout(0.5)).eval(),  # dropout in eval mode: the identity
+    }
+    for reason, edit in cases.items():
+        actor = _hooked(edit)
+        before = {k: v.clone() for k, v in actor.state_dict().items()}
+        torch.manual_seed(3), np.random.seed(3), random.seed(3)
+        states = torch.get_rng_state(), np.random.get_state()[1].copy(), random.getstate()
+        assert nondeterminism(actor, 3) == reason
+        assert torch.equal(torch.get_rng_state(), states[0]) and np.array_equal(np.random.get_state()[1], states[1]) and random.getstate() == states[2]
+        assert all(torch.equal(before[k], v) for k, v in actor.state_dict().items())
+    plain = _hooked(lambda a: None)
+    with torch.no_grad():
+        expected = plain(TensorDict(observation=probe_observations(3), batch_size=[4]))["action"]
+    torch.testing.assert_close(own_actions(plain, probe_observations(3)), expected)
+
+
+def test_the_comparison_finds_what_the_description_misses(monkeypatch):
+    """A forward the description cannot see (here ``nn.Linear.forward`` itself replaced): the
+    batched forward against the module's own on the probe's observations refuses it."""
+    actor = make_actor(3, make_env("pendulum").action_spec, (8, 8))
+    assert PopulationActor.refusal(actor) is None
+    monkeypatch.setattr(nn.Linear, "forward", lambda self, x: torch.nn.functional.linear(x, self.weight, self.bias) * 0.5)
+    assert not isinstance(describe_actor(actor), str)
+    reason = PopulationActor.refusal(actor)
+    assert reason.startswith("the batched forward gives actions") and reason.endswith("away from the actor's own forward"), reason
+    with pytest.raises(ValueError, match="away from the actor's own forward"):
+        PopulationActor(actor)

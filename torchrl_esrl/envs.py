@@ -150,6 +150,25 @@ class EnvSpec:
     transforms: Sequence[Mapping[str, Any]] = ()
     max_episode_steps: int | None = None
 
+    def __post_init__(self) -> None:
+        """The time limit given as a keyword argument too (``env.kwargs.max_episode_steps``, which
+        ``gymnasium.make`` takes) is one value: ``max_episode_steps``; given twice with two values,
+        a :class:`ConfigError` naming both keys."""
+        if "max_episode_steps" not in self.kwargs:
+            return
+        kwargs = dict(self.kwargs)
+        value = kwargs.pop("max_episode_steps")
+        if value is not None and (isinstance(value, bool) or not isinstance(value, int) or value <= 0):
+            raise ConfigError(f"env.kwargs.max_episode_steps: {value!r} is invalid (allowed: a positive integer, best given as env.max_episode_steps)")
+        if value is not None and self.max_episode_steps is not None and int(self.max_episode_steps) != value:
+            raise ConfigError(
+                f"env.kwargs.max_episode_steps: {value} and env.max_episode_steps: {self.max_episode_steps} both set the time limit "
+                f"(allowed: one of them, e.g. env.max_episode_steps={value}, or equal values)"
+            )
+        object.__setattr__(self, "kwargs", kwargs)
+        if value is not None:
+            object.__setattr__(self, "max_episode_steps", value)
+
     @classmethod
     def from_config(cls, env_cfg) -> "EnvSpec":
         """The spec of a config's ``env`` section (``conf/env/*.yaml``)."""
@@ -540,8 +559,16 @@ def describe_transform(transform) -> tuple:
     public = {k: v for k, v in vars(transform).items() if not k.startswith("_") and k != "training"}
     keys = {k: getattr(transform, k, None) for k in ("in_keys", "out_keys", "in_keys_inv", "out_keys_inv")}
     settings = tuple(sorted((key, value) for key, value in ((k, _plain_value(v)) for k, v in {**public, **keys}.items()) if value is not ...))
-    buffers = tuple(sorted((name, tuple(buffer.flatten().tolist()) if buffer.numel() <= 1024 else ("tensor", tuple(buffer.shape))) for name, buffer in transform.named_buffers()))
+    buffers = tuple(sorted((name, _buffer_value(buffer)) for name, buffer in transform.named_buffers()))
     return (f"{type(transform).__module__}.{type(transform).__qualname__}", settings, buffers)
+
+
+def _buffer_value(buffer: torch.Tensor) -> tuple:
+    """A transform's buffer in its description: its values (its shape where large), or that it
+    is not made yet (a lazy buffer a transform fills at the first reset, as ``CatFrames``'s)."""
+    if isinstance(buffer, torch.nn.parameter.UninitializedTensorMixin):
+        return ("uninitialized",)
+    return tuple(buffer.flatten().tolist()) if buffer.numel() <= 1024 else ("tensor", tuple(buffer.shape))
 
 
 def _transform_state(transform) -> dict:

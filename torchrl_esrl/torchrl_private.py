@@ -291,23 +291,30 @@ def optimizer_step_hooks(optimizer: torch.optim.Optimizer) -> bool:
     )
 
 
-def module_hook_dicts(modules) -> tuple:
-    """The dicts in which ``modules`` keep their forward and backward hooks, for :func:`module_hooks`
+MODULE_HOOK_KINDS = ("forward", "forward_pre", "backward", "backward_pre")  # what torch calls around a module's forward
+FORWARD_HOOK_KINDS = MODULE_HOOK_KINDS[:2]  # the kinds that run in a forward without gradient
+
+
+def module_hook_dicts(modules, kinds: tuple[str, ...] = MODULE_HOOK_KINDS) -> tuple:
+    """The dicts in which ``modules`` keep their hooks of ``kinds``, for :func:`module_hooks`
     (torch registers a hook into these same dicts, in place)."""
-    return tuple(hooks for m in modules for hooks in (m._forward_hooks, m._forward_pre_hooks, m._backward_hooks, m._backward_pre_hooks))
+    return tuple(getattr(m, f"_{kind}_hooks") for m in modules for kind in kinds)
 
 
-def module_hooks(hook_dicts: tuple) -> bool:
-    """Whether calling the modules of ``hook_dicts`` (:func:`module_hook_dicts`) would run forward or
-    backward hooks, a module's own or torch's global ones. The hand-written TD3 forwards do not call
-    the modules and hand such networks to ``TD3Loss``; torch keeps the hooks in private dicts with no
-    public getter."""
+def module_hooks(hook_dicts: tuple, kinds: tuple[str, ...] = MODULE_HOOK_KINDS) -> bool:
+    """Whether calling the modules of ``hook_dicts`` (:func:`module_hook_dicts`) would run hooks of
+    ``kinds`` (default: forward and backward), a module's own or torch's global ones. The
+    hand-written forwards do not call the modules and hand such networks to their references;
+    torch keeps the hooks in private dicts with no public getter."""
+    return global_module_hooks(kinds) or any(hook_dicts)
+
+
+def global_module_hooks(kinds: tuple[str, ...] = MODULE_HOOK_KINDS) -> bool:
+    """Whether torch's global module hooks of ``kinds`` are registered
+    (``torch.nn.modules.module.register_module_forward_hook`` and the like): every module call runs them."""
     from torch.nn.modules import module as torch_module
 
-    return bool(
-        torch_module._global_forward_hooks or torch_module._global_forward_pre_hooks
-        or torch_module._global_backward_hooks or torch_module._global_backward_pre_hooks
-    ) or any(hook_dicts)
+    return any(getattr(torch_module, f"_global_{kind}_hooks") for kind in kinds)
 
 
 def gradient_hooks(tensor: torch.Tensor) -> bool:

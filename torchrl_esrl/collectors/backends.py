@@ -28,38 +28,52 @@ def backend_class(name: str) -> Callable[..., object]:
     return getattr(importlib.import_module(module), attribute)
 
 
-def refusals(env) -> dict[str, str | None]:
-    """Per local backend, why it cannot play ``env`` (an id or an :class:`~torchrl_esrl.envs.EnvSpec`)
-    exactly as the ``gym`` reference would, or None where it can."""
-    out = {}
-    for name in LOCAL_BACKENDS:
-        refusal = getattr(backend_class(name), "refusal", None)
-        out[name] = refusal(env) if refusal is not None else None
-    return out
+def refusals(env, population_actor=None) -> dict[str, str | None]:
+    """Per local backend, why it cannot play ``env`` (an id or an :class:`~torchrl_esrl.envs.EnvSpec`),
+    and the members of ``population_actor`` where given, exactly as the ``gym`` reference would,
+    or None where it can."""
+    return {name: _refusal(name, env, population_actor) for name in LOCAL_BACKENDS}
 
 
-def resolve_backend(name: str, env, fast_physics: bool = True, field: str = "es.backend", allowed=None) -> str:
+def _refusal(name: str, env, population_actor) -> str | None:
+    cls = backend_class(name)
+    refusal, policy_refusal = getattr(cls, "refusal", None), getattr(cls, "policy_refusal", None)
+    reason = refusal(env) if refusal is not None else None
+    if reason is None and population_actor is not None and policy_refusal is not None:
+        reason = policy_refusal(population_actor, env)
+    return reason
+
+
+def resolve_backend(name: str, env, fast_physics: bool = True, field: str = "es.backend", allowed=None, population_actor=None) -> str:
     """The backend that plays ``env`` for ``name`` (``es.backend``, or ``ray.worker_backend``
     with ``allowed=LOCAL_BACKENDS``): ``auto`` resolved, the one place it is, to the fastest
-    local backend for ``env`` (:func:`default_backend`), or to the ``gym`` reference without
-    ``fast_physics``; an explicit ``mujoco_batch`` without ``fast_physics`` is refused (the run's
-    pieces would say ``es_physics reference`` while the fast physics ran). Raises a one-line
-    :class:`~torchrl_esrl.errors.ConfigError` naming ``field``."""
+    local backend for ``env`` and ``population_actor`` (:func:`default_backend`), or to the
+    ``gym`` reference without ``fast_physics``; an explicit ``mujoco_batch`` without
+    ``fast_physics`` is refused (the run's pieces would say ``es_physics reference`` while the
+    fast physics ran), as is an explicit backend that cannot play ``population_actor``'s members
+    as the reference would (a policy that is not a deterministic function of its observation, in
+    worker threads). Raises a one-line :class:`~torchrl_esrl.errors.ConfigError` naming ``field``."""
     allowed = list(BACKENDS if allowed is None else allowed)
     if name != "auto" and name not in allowed:
         raise ConfigError(f"{field}: unknown backend '{name}' (allowed: {', '.join(['auto', *allowed])})")
     if name == "mujoco_batch" and not fast_physics:
         others = [n for n in allowed if n != "mujoco_batch"]
         raise ConfigError(f"{field}: mujoco_batch is the fast physics (es_physics), which implementation=reference leaves out (allowed: {', '.join(['auto', *others])}, or implementation=fast)")
+    if name in LOCAL_BACKENDS and population_actor is not None:
+        policy_refusal = getattr(backend_class(name), "policy_refusal", None)
+        reason = policy_refusal(population_actor, env) if policy_refusal is not None else None
+        if reason is not None:
+            others = [n for n in allowed if n != name]
+            raise ConfigError(f"{field}: {name} cannot play this actor exactly as the gym reference would ({reason}) (allowed: {', '.join(['auto', *others])})")
     if name == "auto":
-        return default_backend(env) if fast_physics else "gym"
+        return default_backend(env, population_actor) if fast_physics else "gym"
     return name
 
 
-def default_backend(env) -> str:
-    """The fastest local backend that plays ``env`` (an id or an :class:`~torchrl_esrl.envs.EnvSpec`)
-    exactly as the ``gym`` reference would."""
-    for name, refusal in reversed(refusals(env).items()):
+def default_backend(env, population_actor=None) -> str:
+    """The fastest local backend that plays ``env`` (an id or an :class:`~torchrl_esrl.envs.EnvSpec`),
+    and the members of ``population_actor`` where given, exactly as the ``gym`` reference would."""
+    for name, refusal in reversed(refusals(env, population_actor).items()):
         if refusal is None:
             return name
     return "gym"

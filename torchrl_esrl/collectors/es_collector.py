@@ -12,7 +12,7 @@ from collections.abc import Sequence
 import numpy as np
 import torch
 
-from torchrl_esrl.collectors.backends import backend_class, resolve_backend
+from torchrl_esrl.collectors.backends import backend_class, refusals, resolve_backend
 from torchrl_esrl.collectors.generation import Generation
 from torchrl_esrl.envs import EnvSpec, as_env_spec
 from torchrl_esrl.modules.networks import Mirrored, ModulePopulation
@@ -27,7 +27,8 @@ class ESCollector:
         actor: the actor built by :func:`torchrl_esrl.modules.networks.make_actor` (its architecture and
             action bounds define every member).
         backend: a name in :data:`~torchrl_esrl.collectors.backends.BACKENDS`, or ``"auto"``
-            (:func:`~torchrl_esrl.collectors.backends.resolve_backend`: the fastest for the task).
+            (:func:`~torchrl_esrl.collectors.backends.resolve_backend`: the fastest for the task
+            and the members' forward).
         max_episode_steps: episode length limit (the env's own when None).
         seed: seeds the stream of episode seeds (one fresh reset seed per member and call).
         population: the class that computes the members' actions from their flat parameters:
@@ -41,7 +42,10 @@ class ESCollector:
         self.env = as_env_spec(env, max_episode_steps)
         self.env_id = self.env.id
         self.population_actor = population(actor)
-        backend = resolve_backend(backend, self.env)
+        # Per local backend, why it cannot play this env and these members as the gym reference
+        # would, decided here, once (a module's state may change what a later probe finds).
+        self.refusals = refusals(self.env, self.population_actor)
+        backend = resolve_backend(backend, self.env, population_actor=self.population_actor)
         self.backend = backend_class(backend)(self.env, self.population_actor, **backend_kwargs)
         self.seeds = np.random.default_rng(seed)
         self.frames = 0

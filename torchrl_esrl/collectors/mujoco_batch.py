@@ -58,6 +58,15 @@ class _Chunk:
     pairs: slice | None  # with mirrored pairs: the chunk's pairs (members = pairs and K + pairs)
 
 
+def _policy_refusal(population_actor, observation_dim: int) -> str | None:
+    """:meth:`MujocoBatchBackend.policy_refusal` with the observation size known."""
+    probe = getattr(population_actor, "nondeterminism", None)
+    if isinstance(population_actor, PopulationActor) or probe is None:
+        return None
+    reason = probe(observation_dim)
+    return None if reason is None else f"{reason}, and the worker threads play members in an order that differs from run to run"
+
+
 class _Worker:
     """One thread's own MuJoCo state (gymnasium envs and ``MjData`` are not thread-safe): the env
     whose ``reset(seed)`` gives each member gymnasium's initial state, a batch per chunk size, and
@@ -151,6 +160,9 @@ class MujocoBatchBackend:
         self.horizon = int(spec.max_episode_steps or reset_env.spec.max_episode_steps or 1000)
         self.observation_dim = int(np.prod(reset_env.observation_space.shape))
         self.action_dim = int(self.model.nu)
+        reason = _policy_refusal(population_actor, self.observation_dim)
+        if reason is not None:
+            raise ValueError(f"mujoco_batch backend cannot play this actor exactly as the gym backend would: {reason}")
         # gymnasium multiplies the float32 sum of squared actions: the product's dtype is float32
         # for a Python number, and the weight's for a numpy one.
         self.ctrl_cost_weight = np.float32(1) * self.constants["_ctrl_cost_weight"]
@@ -179,6 +191,19 @@ class MujocoBatchBackend:
             finally:
                 gym_env.close()
         return ", ".join(reasons) if reasons else None
+
+    @staticmethod
+    def policy_refusal(population_actor, env) -> str | None:
+        """Why this backend cannot play the members of ``population_actor`` on ``env`` exactly as
+        the ``gym`` reference would, or None. Its worker threads play chunks of members in an
+        order that differs from run to run, so the members' forward must be a deterministic
+        function of their parameters and observation: :class:`PopulationActor` is (arithmetic
+        on the flat vectors); a population with a ``nondeterminism`` method is asked
+        (:class:`~torchrl_esrl.modules.networks.ModulePopulation`: a forward that draws random
+        numbers or keeps state is not); any other is taken as it is."""
+        if isinstance(population_actor, PopulationActor) or getattr(population_actor, "nondeterminism", None) is None:
+            return None
+        return _policy_refusal(population_actor, as_env_spec(env).sizes().observation_dim)
 
     def chunks(self, population: int, mirrored: Mirrored | None = None) -> list[_Chunk]:
         """The population cut into chunks of (nearly) equal size: of whole pairs with ``mirrored``,

@@ -17,7 +17,7 @@ from torchrl.envs import GymWrapper, TransformedEnv
 from torchrl.modules import AdditiveGaussianModule
 
 from torchrl_esrl.envs import describe_transform, project_transforms
-from torchrl_esrl.modules.networks import describe_actor, squash
+from torchrl_esrl.modules.networks import describe_actor, forward_difference, probe_observations, squash
 from torchrl_esrl.modules.warmup import RandomWarmup
 from torchrl_esrl.torchrl_private import collector_carrier, gym_env_of, gym_env_state, load_gym_env_state, restore_collector, unchecked_tensordict
 
@@ -48,8 +48,34 @@ def _actor_layers(description) -> list:
     return [(layer.linear.weight, layer.linear.bias, _ACTIVATION_FUNCTIONS[layer.activation]) for layer in description.mlp.layers]
 
 
+def _actor_forward(layers, x: torch.Tensor) -> torch.Tensor:
+    """The actor's MLP on ``x`` as its modules compute it (:func:`_actor_layers`), before ``TanhModule``."""
+    for weight, bias, activation in layers:
+        x = torch.nn.functional.linear(x, weight, bias)
+        if activation is not None:
+            x = activation(x)
+    return x
+
+
+def _forward_difference(actor, description) -> str | None:
+    """Why :class:`GymTD3Collector`'s forward (one observation at a time) does not give the actor
+    module's actions on the probe's observations (:func:`~torchrl_esrl.modules.networks.forward_difference`), or None."""
+    layers, tanh_module = _actor_layers(description), description.tanh_module
+    bounds = (tanh_module.action_low, tanh_module.action_high)
+
+    def forward(observations: torch.Tensor) -> torch.Tensor:
+        with torch.no_grad():
+            return torch.cat([squash(tanh_module, _actor_forward(layers, row.unsqueeze(0)), *bounds) for row in observations])
+
+    span = (bounds[1] - bounds[0]) if tanh_module.non_trivial else torch.tensor(2.0)
+    return forward_difference(actor, {"the collector's forward": forward}, probe_observations(description.mlp.sizes[0][1]), span)
+
+
 def _refusal(env, policy, device) -> str | None:
-    """Why :class:`GymTD3Collector` cannot step exactly what ``Collector`` over ``env`` would, or None."""
+    """Why :class:`GymTD3Collector` cannot step exactly what ``Collector`` over ``env`` would, or
+    None: decided from the env's transforms and the actor's description (its layers, and nothing
+    run around them: :func:`~torchrl_esrl.modules.networks.describe_actor`), then by comparing the
+    collector's forward with the actor module's own on a few observations."""
     if torch.device(device).type != "cpu" or (env.device is not None and torch.device(env.device).type != "cpu"):
         return f"the env and policy must be on cpu (got env {env.device}, policy {device})"
     if not isinstance(env, TransformedEnv) or not isinstance(env.base_env, GymWrapper):
@@ -65,8 +91,9 @@ def _refusal(env, policy, device) -> str | None:
     inner = policy.policy if isinstance(policy, RandomWarmup) else policy
     if not isinstance(inner, TensorDictSequential) or len(inner.module) != 2 or type(inner.module[1]) is not AdditiveGaussianModule:
         return "the policy must be the actor followed by AdditiveGaussianModule"
-    description = describe_actor(inner.module[0])
-    return description if isinstance(description, str) else None
+    actor = inner.module[0]
+    description = describe_actor(actor)
+    return description if isinstance(description, str) else _forward_difference(actor, description)
 
 
 class GymTD3Collector:
@@ -81,8 +108,10 @@ class GymTD3Collector:
     float32 observations and rewards, and the float32 running episode return of ``RewardSum``.
     Each batch of ``frames_per_batch`` frames comes out as one TensorDict (tests/test_td3.py
     checks it against the ``Collector`` path, frame by frame). Any other env (another transform,
-    another device) or policy (another layer or activation) is refused with a one-line error
-    (:meth:`supports` says which are taken; the factory hands the others to ``Collector``).
+    another device) or policy (another layer or activation, a forward hook, a parametrization,
+    a forward that gives other actions than the collector's on the probe's observations) is
+    refused with a one-line error (:meth:`supports` says which are taken; the factory hands the
+    others to ``Collector``).
     """
 
     @staticmethod
@@ -146,11 +175,7 @@ class GymTD3Collector:
             if self.warmup is not None and self.warmup.warming_up:
                 action = self.warmup.draw((1,))
             else:
-                x = torch.from_numpy(observations[i : i + 1])
-                for weight, bias, activation in layers:  # the actor's MLP, as its modules compute it
-                    x = torch.nn.functional.linear(x, weight, bias)
-                    if activation is not None:
-                        x = activation(x)
+                x = _actor_forward(layers, torch.from_numpy(observations[i : i + 1]))
                 if self.numpy_steps is None:
                     draw = torch.normal(mean=mean, std=std)  # AdditiveGaussianModule's draw
                     action = squash(tanh, x, *self.squash_bounds)

@@ -6,11 +6,16 @@ and `load_flat_parameters` are the bridge between the two views. Two classes eva
 many flat vectors at once: `ModulePopulation` (the reference: the actor module itself,
 through ``torch.func.functional_call``) and `PopulationActor` (one batched numpy forward
 for a whole ES population, for the plain MLP actors of `make_actor`). `describe_mlp` and
-`describe_actor` are the one reading of a network's layers that every hand-written (fast) piece
-decides from.
+`describe_actor` are the one reading of a network that every hand-written (fast) piece decides
+from: its layers, and what runs beside them (hooks, parametrizations, parameters); the probes
+(`own_actions`, `forward_difference`, `nondeterminism`) then compare what a hand-written forward
+gives with what the module itself gives on a few observations, and whether that is a
+deterministic function of the observation.
 """
 from __future__ import annotations
 
+import copy
+import random
 import threading
 from dataclasses import dataclass, replace
 
@@ -21,11 +26,12 @@ from tensordict.nn import TensorDictModule, TensorDictSequential
 from tensordict import TensorDict
 from torch import nn
 from torch.func import functional_call
-from torch.nn.utils import parameters_to_vector, vector_to_parameters
+from torch.nn.utils import parameters_to_vector, parametrize, vector_to_parameters
 from torchrl.data import TensorSpec
 from torchrl.modules import MLP, TanhModule, ValueOperator
 
 from torchrl_esrl.threads import torch_threads
+from torchrl_esrl.torchrl_private import FORWARD_HOOK_KINDS, global_module_hooks, module_hook_dicts
 
 ACTIVATIONS = {"tanh": nn.Tanh, "relu": nn.ReLU, "elu": nn.ELU}  # actor.activation, td3.critic_activation
 # The activations the fast pieces compute, by module type (exact types); any other layer hands over to the reference.
@@ -162,6 +168,13 @@ class ModulePopulation:
         with self.lock, torch_threads(1):
             return self._forward(layers, observations)
 
+    def nondeterminism(self, observation_dim: int) -> str | None:
+        """Why its members' actions are not a deterministic function of their parameters and
+        observation (the actor's forward draws random numbers, or keeps state: :func:`nondeterminism`),
+        or None. Backends that play members in an order that varies from run to run need None."""
+        reason = nondeterminism(self.actor, observation_dim)
+        return None if reason is None else f"actor: {reason}"
+
     def __getstate__(self) -> dict:  # picklable for Ray workers: a lock of their own
         return {k: v for k, v in self.__dict__.items() if k != "lock"}
 
@@ -220,6 +233,8 @@ def describe_mlp(module: nn.Module) -> MLPDescription | str:
         return "a reshaped output (out_features is a shape)"
     layers: list[LinearLayer] = []
     for name, child in module.named_children():
+        if parametrize.is_parametrized(child):
+            return f"{name}: a parametrization of its {', '.join(child.parametrizations)} (torch.nn.utils.parametrize)"
         if type(child) is nn.Linear:
             layers.append(LinearLayer(name, child))
         elif type(child) in FAST_ACTIVATIONS and layers and layers[-1].activation is None:
@@ -240,8 +255,13 @@ class ActorDescription:
 
 
 def describe_actor(actor: nn.Module) -> ActorDescription | str:
-    """``actor`` as an :class:`ActorDescription` when it is ``TensorDictModule(MLP, observation)``
-    then ``TanhModule -> action`` with an MLP :func:`describe_mlp` reads; else the reason."""
+    """``actor`` as an :class:`ActorDescription` when it computes what its modules' classes say:
+    ``TensorDictModule(MLP, observation)`` then ``TanhModule -> action`` with an MLP
+    :func:`describe_mlp` reads, whose parameters are its Linear layers' weights and biases (in
+    order), with no forward hook or forward pre-hook (the module's own or torch's global ones) and
+    no ``forward`` set on an instance; else the reason. Buffers are allowed: none of these
+    classes' forwards reads a buffer but ``TanhModule``'s bounds. Backward hooks are allowed: a
+    forward without gradient does not run them (the TD3 loss checks them itself)."""
     steps = actor.module if type(actor) is TensorDictSequential else ()
     if not (
         len(steps) == 2
@@ -256,7 +276,133 @@ def describe_actor(actor: nn.Module) -> ActorDescription | str:
     mlp = describe_mlp(steps[0].module)
     if isinstance(mlp, str):
         return f"actor MLP: {mlp}"
+    reason = _call_refusal(actor)
+    if reason is not None:
+        return reason
+    expected = [f"module.0.module.{layer.name}.{kind}" for layer in mlp.layers for kind, tensor in (("weight", layer.linear.weight), ("bias", layer.linear.bias)) if tensor is not None]
+    names = [name for name, _ in actor.named_parameters()]
+    if names != expected:
+        other = next((name for name in names if name not in expected), None) or next(name for name in expected if name not in names)
+        return f"actor parameters other than its Linear layers' weights and biases ({other})"
     return ActorDescription(mlp, steps[1])
+
+
+def _call_refusal(module: nn.Module) -> str | None:
+    """Why calling ``module`` may run more than its modules' classes' forwards: forward hooks or
+    forward pre-hooks (its modules' or torch's global ones), a ``forward`` set on an instance."""
+    for kind in FORWARD_HOOK_KINDS:
+        if global_module_hooks((kind,)):
+            return f"torch's global {kind.replace('_', ' ')} hooks"
+    for name, child in module.named_modules():
+        for kind in FORWARD_HOOK_KINDS:
+            if any(module_hook_dicts((child,), (kind,))):
+                return f"a {kind.replace('_', ' ')} hook on {name or 'the actor'}"
+        if "forward" in vars(child):
+            return f"a forward set on the instance {name or 'the actor'}"
+    return None
+
+
+# ------------------------------------------------------------------------ probes: what a module computes
+PROBE_SCALES = (0.1, 1.0, 3.0, 10.0)  # the probe's observations: a standard normal row at each scale (MuJoCo's reach ~10)
+PROBE_ATOL = 1e-4  # a hand-written forward's largest distance from the module's own, per unit of the action range
+
+
+def probe_observations(observation_dim: int) -> torch.Tensor:
+    """The few observations [4, observation_dim] the probes call actors on (a generator of their own:
+    the run's random streams are not touched)."""
+    rows = torch.randn(len(PROBE_SCALES), observation_dim, generator=torch.Generator().manual_seed(0))
+    return rows * torch.tensor(PROBE_SCALES).unsqueeze(-1)
+
+
+@torch.no_grad()
+def own_actions(actor: nn.Module, observations: torch.Tensor) -> torch.Tensor | str:
+    """The actions [N, act] ``actor``'s own forward gives on each of ``observations`` [N, obs]
+    alone, as the reference evaluation calls it; or why they are not a deterministic function of
+    the observation: the forward draws from a global random generator (torch's, numpy's or
+    Python's: dropout, ``RReLU`` in training mode), two calls on the same observations differ, or
+    a call changes the module's parameters or buffers (``spectral_norm``'s power iteration,
+    running statistics). A copy of ``actor`` is called, twice, and the global generators are left
+    as they were: the run is not changed by the probe."""
+    try:
+        probed = copy.deepcopy(actor)
+    except Exception as error:  # noqa: BLE001 - a module that cannot be copied cannot be probed
+        return f"it cannot be copied to be probed ({type(error).__name__})"
+    states = _random_states()
+    try:
+        with torch_threads(1):  # as ModulePopulation calls it
+            calls = [
+                torch.cat([probed(TensorDict(observation=row.unsqueeze(0), batch_size=[1])).get("action") for row in observations])
+                for _ in range(2)
+            ]
+    except Exception as error:  # noqa: BLE001 - whatever it raises, the reference raises it too
+        return f"its forward fails on one observation ({type(error).__name__}: {str(error).strip().splitlines()[0] if str(error).strip() else ''})"
+    finally:
+        drew = _random_states() != states
+        _restore_random_states(states)
+    if drew:
+        return "its forward draws random numbers"
+    if not torch.equal(calls[0], calls[1]):
+        return "two calls on the same observation give different actions"
+    before, after = _tensors(actor), _tensors(probed)
+    changed = next((name for name in before if name not in after or not torch.equal(before[name], after[name])), None)
+    if changed is not None:
+        return f"its forward changes {changed}"
+    return calls[0]
+
+
+def nondeterminism(actor: nn.Module, observation_dim: int) -> str | None:
+    """Why ``actor`` is not a deterministic function of its observation (:func:`own_actions` on
+    :func:`probe_observations`), or None."""
+    actions = own_actions(actor, probe_observations(observation_dim))
+    return actions if isinstance(actions, str) else None
+
+
+def forward_difference(actor: nn.Module, forwards: dict, observations: torch.Tensor, span: torch.Tensor) -> str | None:
+    """Why the hand-written ``forwards`` (name: observations [N, obs] -> actions [N, act]) do not
+    compute what ``actor`` computes on ``observations`` (:func:`own_actions`, up to float32
+    rounding: :data:`PROBE_ATOL` per unit of ``span``, the action range), or None."""
+    expected = own_actions(actor, observations)
+    if isinstance(expected, str):
+        return f"actor: {expected}"
+    atol = PROBE_ATOL * max(1.0, float(span.max()))
+    for name, forward in forwards.items():
+        got = forward(observations)
+        if got.shape != expected.shape or not torch.allclose(got.to(expected.dtype), expected, rtol=0, atol=atol):
+            gap = (got.double() - expected.double()).abs().max().item() if got.shape == expected.shape else float("nan")
+            return f"{name} gives actions {gap:.3g} away from the actor's own forward"
+    return None
+
+
+def _tensors(module: nn.Module) -> dict[str, torch.Tensor]:
+    """``module``'s parameters and buffers by name."""
+    return {name: tensor.detach() for name, tensor in (*module.named_parameters(), *module.named_buffers())}
+
+
+class _RandomStates(tuple):
+    """The global generators' states: torch's (CPU), numpy's and Python's; equal when no draw was made."""
+
+    def __eq__(self, other) -> bool:
+        (torch_a, numpy_a, python_a), (torch_b, numpy_b, python_b) = self, other
+        return (
+            torch.equal(torch_a, torch_b)
+            and numpy_a[0] == numpy_b[0] and np.array_equal(numpy_a[1], numpy_b[1]) and numpy_a[2:] == numpy_b[2:]
+            and python_a == python_b
+        )
+
+    def __ne__(self, other) -> bool:
+        return not self == other
+
+    __hash__ = None
+
+
+def _random_states() -> _RandomStates:
+    return _RandomStates((torch.get_rng_state(), np.random.get_state(), random.getstate()))
+
+
+def _restore_random_states(states: _RandomStates) -> None:
+    torch.set_rng_state(states[0])
+    np.random.set_state(states[1])
+    random.setstate(states[2])
 
 
 class PopulationActor:
@@ -278,9 +424,32 @@ class PopulationActor:
 
     @staticmethod
     def refusal(actor) -> str | None:
-        """None where this forward computes what ``actor`` computes (a :func:`make_actor` MLP:
-        biased Linear layers with tanh or ReLU between them, squashed by a non-clamping
-        ``TanhModule``), else why not (:func:`describe_actor`)."""
+        """None where this forward computes what ``actor`` computes, else why not: decided from
+        its description (:func:`describe_actor`: a :func:`make_actor` MLP of biased Linear layers
+        with tanh or ReLU between them, squashed by a non-clamping ``TanhModule``, nothing run
+        around its modules' forwards), then by comparison (:meth:`difference`: this forward
+        against the actor module's own on a few observations)."""
+        reason = PopulationActor._description_refusal(actor)
+        if reason is not None:
+            return reason
+        population = object.__new__(PopulationActor)
+        population._build(actor)
+        return population.difference(actor)
+
+    @staticmethod
+    def supports(actor) -> bool:
+        return PopulationActor.refusal(actor) is None
+
+    def __init__(self, actor: TensorDictSequential):
+        reason = self._description_refusal(actor)
+        if reason is None:
+            self._build(actor)
+            reason = self.difference(actor)
+        if reason is not None:
+            raise ValueError(f"PopulationActor computes biased Linear layers with tanh or ReLU between them only; this actor differs ({reason}: {_describe(actor)}): use ModulePopulation")
+
+    @staticmethod
+    def _description_refusal(actor) -> str | None:
         description = describe_actor(actor)
         if isinstance(description, str):
             return description
@@ -289,14 +458,7 @@ class PopulationActor:
         reason = description.mlp.plain_refusal()
         return None if reason is None else f"actor MLP: {reason}"
 
-    @staticmethod
-    def supports(actor) -> bool:
-        return PopulationActor.refusal(actor) is None
-
-    def __init__(self, actor: TensorDictSequential):
-        reason = self.refusal(actor)
-        if reason is not None:
-            raise ValueError(f"PopulationActor computes biased Linear layers with tanh or ReLU between them only; this actor differs ({reason}: {_describe(actor)}): use ModulePopulation")
+    def _build(self, actor) -> None:
         description = describe_actor(actor)
         tanh_module = description.tanh_module
         self.layers: list[tuple[int, int]] = description.mlp.sizes  # (out_features, in_features) per Linear
@@ -305,6 +467,21 @@ class PopulationActor:
         self.high = tanh_module.action_high.detach().numpy().astype(np.float32)
         self.non_trivial = bool(tanh_module.non_trivial)
         self.num_parameters = sum(o * i + o for o, i in self.layers)
+
+    def difference(self, actor) -> str | None:
+        """Why this forward does not give ``actor``'s actions on :func:`probe_observations`, each
+        member the actor's own parameters, through :meth:`__call__` and :meth:`mirrored`
+        (:func:`forward_difference`), or None."""
+        observations = probe_observations(self.layers[0][1])
+        center = parameters_to_vector(actor.parameters()).detach().float()
+        members = center.expand(len(observations), -1)  # every member the actor itself
+        mirrored = Mirrored(center, torch.zeros(1, center.numel()).expand(len(observations) // 2, -1))
+
+        def pairs(x: torch.Tensor) -> torch.Tensor:
+            return torch.from_numpy(self.mirrored(*self.split_pairs(mirrored), x.numpy().reshape(2, len(x) // 2, -1)).reshape(len(x), -1))
+
+        span = torch.from_numpy(self.high - self.low) if self.non_trivial else torch.tensor(2.0)
+        return forward_difference(actor, {"the batched forward": lambda x: self(members, x), "the mirrored forward": pairs}, observations, span)
 
     def split(self, params: torch.Tensor) -> list[tuple[np.ndarray, np.ndarray]]:
         """Views of the stacked flat vectors as (weight [P, out, in], bias [P, out]) per layer."""

@@ -192,21 +192,24 @@ def make_cem(cfg: DictConfig, actor):
 
 def es_population(actor, pieces: Collection[str]):
     """The class that computes ES members' actions: :class:`PopulationActor` where it computes
-    exactly what ``actor`` does (tanh/ReLU MLPs), else the reference :class:`ModulePopulation`."""
+    what ``actor`` does (tanh/ReLU MLPs, nothing run around their modules, the same actions on
+    the probe's observations: :meth:`PopulationActor.refusal`), else the reference
+    :class:`ModulePopulation`."""
     return PopulationActor if "es_forward" in pieces and PopulationActor.supports(actor) else ModulePopulation
 
 
-def es_backend(cfg: DictConfig, pieces: Collection[str] | None = None) -> tuple[str, dict]:
+def es_backend(cfg: DictConfig, pieces: Collection[str] | None = None, population_actor=None) -> tuple[str, dict]:
     """The ES collector's backend and its keyword arguments: ``es.backend`` (and, for ``ray``,
     ``ray.worker_backend``) resolved once (:func:`~torchrl_esrl.collectors.backends.resolve_backend`:
-    ``auto`` is the fastest local backend for the env, or the ``gym`` reference without the
-    ``es_physics`` piece, which also refuses an explicit ``mujoco_batch``); ``mujoco_batch``
-    steps on this job's share of the cores (:func:`~torchrl_esrl.threads.job_cores`)."""
+    ``auto`` is the fastest local backend for the env and the members' forward
+    ``population_actor``, or the ``gym`` reference without the ``es_physics`` piece, which also
+    refuses an explicit ``mujoco_batch``); ``mujoco_batch`` steps on this job's share of the cores
+    (:func:`~torchrl_esrl.threads.job_cores`)."""
     spec, fast_physics = make_env_spec(cfg), "es_physics" in _pieces(cfg, pieces)
-    backend = resolve_backend(cfg.es.backend, spec, fast_physics)
+    backend = resolve_backend(cfg.es.backend, spec, fast_physics, population_actor=population_actor)
     if backend == "ray":  # offspring evaluated on a Ray cluster, see the `ray` config section
         kwargs = OmegaConf.to_container(cfg.ray, resolve=True)  # its keys are RayBackend's arguments
-        kwargs["worker_backend"] = resolve_backend(kwargs["worker_backend"], spec, fast_physics, "ray.worker_backend", LOCAL_BACKENDS)
+        kwargs["worker_backend"] = resolve_backend(kwargs["worker_backend"], spec, fast_physics, "ray.worker_backend", LOCAL_BACKENDS, population_actor)
         return backend, kwargs
     return backend, {"nthread": job_cores()} if backend == "mujoco_batch" else {}
 
@@ -214,11 +217,12 @@ def es_backend(cfg: DictConfig, pieces: Collection[str] | None = None) -> tuple[
 def make_es_collector(cfg: DictConfig, actor, pieces: Collection[str] | None = None) -> ESCollector:
     """The ES collector on :func:`es_backend`."""
     fast = _pieces(cfg, pieces)
-    backend, backend_kwargs = es_backend(cfg, fast)
     actor = cpu_actor(actor)
+    population = es_population(actor, fast)
+    backend, backend_kwargs = es_backend(cfg, fast, population(actor))
     return ESCollector(
         make_env_spec(cfg), actor, backend=backend,
-        seed=int(cfg.seed) + 2, population=es_population(actor, fast), **backend_kwargs,
+        seed=int(cfg.seed) + 2, population=population, **backend_kwargs,
     )
 
 
@@ -334,7 +338,7 @@ def implementations(cfg: DictConfig, **components) -> dict[str, str]:
         piece("es_forward", isinstance(population, PopulationActor), getattr(population, "actor", None) is not None and PopulationActor.refusal(population.actor) or None)
         backend = es_collector.backend
         name = getattr(backend, "worker_backend", backend.name)  # a Ray backend: what its workers run
-        piece("es_physics", name == MujocoBatchBackend.name, MujocoBatchBackend.refusal(es_collector.env))
+        piece("es_physics", name == MujocoBatchBackend.name, es_collector.refusals[MujocoBatchBackend.name])
     return out
 
 
