@@ -19,8 +19,13 @@ from __future__ import annotations
 from omegaconf import DictConfig
 
 from torchrl_esrl.algorithm.cem_rl_iteration import POPULATION_FRAMES, GenerationsProgress, cem_rl_iteration, cem_rl_metrics
+from torchrl_esrl.collectors.es_collector import make_es_collector
+from torchrl_esrl.data.multibuffer import buffer_holdings, make_multibuffer
+from torchrl_esrl.envs import make_train_env
+from torchrl_esrl.es.cem import cem_holdings, make_cem
+from torchrl_esrl.modules.networks import make_actor_critic
+from torchrl_esrl.objectives.td3 import make_td3, td3_holdings
 from torchrl_esrl.run.algorithm_info import AlgorithmInfo
-from torchrl_esrl.run.factories import buffer_holdings, cem_holdings, make_actor_critic, make_cem, make_multibuffer, make_es_collector, make_td3, make_train_env, td3_holdings
 from torchrl_esrl.run.lifecycle import Run, recipe_main
 
 ALGORITHMS = (AlgorithmInfo("cem_rl", "CEM-RL", returned="CEM mean", rank=5, td3_frames=POPULATION_FRAMES),)

@@ -614,7 +614,7 @@ def test_estimate_matches_the_filled_buffers_and_the_written_checkpoint(finished
     from torchrl_esrl.data.multibuffer import MultiBuffer
     from torchrl_esrl.envs import env_sizes
     from torchrl_esrl.run.capacity import CHECKPOINT_MARGIN, bytes_per_transition, estimate
-    from torchrl_esrl.run.factories import make_multibuffer
+    from torchrl_esrl.data.multibuffer import make_multibuffer
     from torchrl_esrl.torchrl_private import tensor_storage_data
 
     run_dir = finished(script)

@@ -25,8 +25,9 @@ from dataclasses import dataclass, field
 
 import torch
 
-from torchrl_esrl.es.strategy import checked_returns
-from torchrl_esrl.modules.networks import Mirrored, flat_parameters, load_flat_parameters
+from torchrl_esrl.es.strategy import checked_returns, strategy_holdings
+from torchrl_esrl.modules.networks import Mirrored, actor_parameters, flat_parameters, load_flat_parameters
+from torchrl_esrl.run.capacity import FLOAT, Holding
 from torchrl_esrl.threads import torch_threads
 from torchrl_esrl.torchrl_private import foreach_lerp_
 
@@ -225,3 +226,27 @@ def cem_rl_gradient_steps(td3, buffer, population: torch.Tensor, rl_members: int
             at.member, at.member_critic_steps, at.member_actor_steps = member + 1, 0, 0
     td3.updates += at.critic_steps
     return {"critic_steps": at.critic_steps, "actor_steps": at.actor_steps, "critic_losses": at.critic_losses}
+
+
+def make_cem(cfg, actor) -> DiagonalCEM:
+    """The diagonal CEM of the ``cem`` section centred on the actor's parameters, on its own noise
+    stream (``seed + 1``)."""
+    c = cfg.cem
+    return DiagonalCEM(
+        flat_parameters(actor).cpu(),
+        population_size=c.population_size,
+        sigma_init=c.sigma_init,
+        elite_fraction=c.elite_fraction,
+        damping_init=c.damping_init,
+        damping_end=c.damping_end,
+        damping_tau=c.damping_tau,
+        antithetic=c.antithetic,
+        generator=torch.Generator().manual_seed(int(cfg.seed) + 1),
+    )
+
+
+def cem_holdings(cfg, sizes) -> list[Holding]:
+    """:func:`make_cem`'s CEM state and one generation (population, noise, episodes); a stop
+    within a generation (CEM-RL's gradient steps) also writes its population to the checkpoint."""
+    population = Holding("population", FLOAT * actor_parameters(cfg, sizes) * int(cfg.cem.population_size), "cem.population_size", in_memory=False)
+    return [*strategy_holdings(cfg, sizes, "cem", DiagonalCEM.HELD_COPIES), population]

@@ -53,7 +53,7 @@ from torchrl_esrl.run.capacity import Holding, estimate
 from torchrl_esrl.run.checkpoint import CHECKPOINT_DIR, RunCheckpoint
 from torchrl_esrl.run.console import final_lines, iteration_line, print_config
 from torchrl_esrl.run.determinism import make_deterministic
-from torchrl_esrl.run.factories import component, implementation_line, implementations
+from torchrl_esrl.run.implementation import component, implementation_line, implementations
 from torchrl_esrl.run.harness import RunHarness
 from torchrl_esrl.run.lock import RunLock
 from torchrl_esrl.run.metrics import read_metrics

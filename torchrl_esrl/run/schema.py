@@ -236,7 +236,7 @@ class RunConfig:
 
     seed: int = number(0, low=0, high=SEED_LIMIT, integer=True)
     # fast | reference: reference is stock TorchRL end to end; fast swaps in pieces proven equal (docs/performance.md)
-    implementation: str = one_of("fast", among="torchrl_esrl.run.factories.IMPLEMENTATIONS")
+    implementation: str = one_of("fast", among="torchrl_esrl.run.implementation.IMPLEMENTATIONS")
     device: str = checked_by("cpu", "torchrl_esrl.run.config.validate_device")
     iterations: int = count(20)  # outer loop of Algorithm 1
     experiment_name: str = checked("paper", "name")  # the experiment preset's name (conf/experiment/)
