@@ -21,7 +21,7 @@ from torchrl_esrl.collectors.es_collector import make_es_collector
 from torchrl_esrl.data.multibuffer import buffer_holdings, make_multibuffer
 from torchrl_esrl.data.threshold import make_threshold
 from torchrl_esrl.envs import make_train_env
-from torchrl_esrl.es.cem import cem_holdings, make_cem
+from torchrl_esrl.es.cem import CEMConfig, cem_holdings, make_cem
 from torchrl_esrl.modules.networks import make_actor_critic
 from torchrl_esrl.objectives.td3 import make_td3, td3_holdings
 from torchrl_esrl.run.algorithm_info import AlgorithmInfo
@@ -31,6 +31,9 @@ ALGORITHMS = (
     AlgorithmInfo("cem_rl_buffers", "CEM-RL (return-routed buffers)", returned="CEM mean", rank=5, td3_frames=POPULATION_FRAMES),
     AlgorithmInfo("cem_rl_buffers_shared", "CEM-RL (return-routed buffers, one shared buffer)", returned="CEM mean", rank=5, td3_frames=POPULATION_FRAMES),
 )
+# With experiment=tiny (the tests' budget, tests/conftest.py): a good episode by the first generation's end,
+# so that the strict readiness rule lets the RL members learn in the second.
+TINY_OVERRIDES = ("cem.population_size=6", "cem.start_frames=0", "buffer.batch_size=32", "buffer.min_size=32", "buffer.renormalize=false")
 
 
 def train(cfg: DictConfig, run: Run) -> dict:
@@ -73,7 +76,7 @@ def holdings(cfg: DictConfig, sizes) -> list:
     return [*td3_holdings(cfg, sizes), *buffer_holdings(cfg, sizes, buffers=1 if cfg.buffer.mode == "shared" else 3), *cem_holdings(cfg, sizes)]
 
 
-main = recipe_main(train, config_name="cem_rl_buffers", algorithm=algorithm, holdings=holdings)
+main = recipe_main(train, config_name="cem_rl_buffers", algorithm=algorithm, holdings=holdings, sections={"cem": CEMConfig})
 
 if __name__ == "__main__":
     main()

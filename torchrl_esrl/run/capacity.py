@@ -9,8 +9,7 @@ config and the task's observation and action sizes, without allocating it:
   (:func:`bytes_per_transition`); a ``LazyTensorStorage`` allocates its whole capacity at the
   first write;
 - an evolution strategy's population and noise, and one generation's transitions, held until
-  they are routed to the buffers (:func:`~torchrl_esrl.es.openes.es_holdings`,
-  :func:`~torchrl_esrl.es.cem.cem_holdings`);
+  they are routed to the buffers (:func:`~torchrl_esrl.es.strategy.strategy_holdings`);
 - networks and optimiser states (:func:`~torchrl_esrl.objectives.td3.td3_holdings`).
 
 :func:`estimate` adds them up, and one checkpoint on disk (what is checkpointed, plus a margin
