@@ -18,7 +18,9 @@ from __future__ import annotations
 
 from omegaconf import DictConfig
 
-from torchrl_esrl.algorithm.cem_rl_iteration import POPULATION_FRAMES, GenerationsProgress, cem_rl_iteration, cem_rl_metrics
+from torchrl_esrl.algorithm.cem_rl_iteration import (
+    POPULATION_FRAMES, GenerationsProgress, cem_rl_iteration, cem_rl_metrics, population_under_way_holdings,
+)
 from torchrl_esrl.collectors.es_collector import make_es_collector
 from torchrl_esrl.data.multibuffer import buffer_holdings, make_multibuffer
 from torchrl_esrl.envs import make_train_env
@@ -53,8 +55,10 @@ def train(cfg: DictConfig, run: Run) -> dict:
 
 
 def holdings(cfg: DictConfig, sizes) -> list:
-    """What :func:`train` builds: the TD3 learner, one replay buffer, the CEM and its generation."""
-    return [*td3_holdings(cfg, sizes), *buffer_holdings(cfg, sizes, buffers=1), *cem_holdings(cfg, sizes)]
+    """What :func:`train` builds: the TD3 learner, one replay buffer, the CEM and its generation (and
+    the population a stop within its gradient steps writes)."""
+    return [*td3_holdings(cfg, sizes), *buffer_holdings(cfg, sizes, buffers=1), *cem_holdings(cfg, sizes),
+            *population_under_way_holdings(cfg, sizes)]
 
 
 main = recipe_main(train, config_name="cem_rl", algorithm=ALGORITHMS[0], holdings=holdings, sections={"cem": CEMConfig})

@@ -16,7 +16,9 @@ from __future__ import annotations
 
 from omegaconf import DictConfig
 
-from torchrl_esrl.algorithm.cem_rl_iteration import POPULATION_FRAMES, GenerationsProgress, cem_rl_iteration, cem_rl_metrics, one_buffer, routed_by_return
+from torchrl_esrl.algorithm.cem_rl_iteration import (
+    POPULATION_FRAMES, GenerationsProgress, cem_rl_iteration, cem_rl_metrics, one_buffer, population_under_way_holdings, routed_by_return,
+)
 from torchrl_esrl.collectors.es_collector import make_es_collector
 from torchrl_esrl.data.multibuffer import buffer_holdings, make_multibuffer
 from torchrl_esrl.data.threshold import make_threshold
@@ -72,8 +74,10 @@ def algorithm(cfg: DictConfig) -> AlgorithmInfo:
 
 
 def holdings(cfg: DictConfig, sizes) -> list:
-    """What :func:`train` builds: the TD3 learner, the three buffers (one in shared mode), the CEM and its generation."""
-    return [*td3_holdings(cfg, sizes), *buffer_holdings(cfg, sizes, buffers=1 if cfg.buffer.mode == "shared" else 3), *cem_holdings(cfg, sizes)]
+    """What :func:`train` builds: the TD3 learner, the three buffers (one in shared mode), the CEM and its
+    generation (and the population a stop within its gradient steps writes)."""
+    return [*td3_holdings(cfg, sizes), *buffer_holdings(cfg, sizes, buffers=1 if cfg.buffer.mode == "shared" else 3),
+            *cem_holdings(cfg, sizes), *population_under_way_holdings(cfg, sizes)]
 
 
 main = recipe_main(train, config_name="cem_rl_buffers", algorithm=algorithm, holdings=holdings, sections={"cem": CEMConfig})

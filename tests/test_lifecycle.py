@@ -442,6 +442,23 @@ def test_cem_rl_with_routed_buffers_fills_good_bad_and_noisy_and_learns_at_the_r
 
 
 @pytest.mark.e2e
+def test_the_cem_alone_plays_the_generations_cem_rl_plays_without_rl(finished, tmp_path):
+    """recipes/cem.py is CEM-RL's sepCEM without gradient steps: CEM-RL with ``cem.rl_fraction=0``
+    and the same population evaluates the same means, plays the same members and ends the same."""
+    cem = finished("cem.py")
+    population = next(o for o in tiny_overrides("cem.py") if o.startswith("cem.population_size="))
+    result = run(tmp_path, "cem.rl_fraction=0", population, script="cem_rl.py")
+    assert result.returncode == 0, result.stderr[-3000:]
+    alone, without_rl = read_metrics(cem / "metrics.csv"), read_metrics(tmp_path / "metrics.csv")
+    assert len(alone) == len(without_rl) == 2 and not any(row["td3_updates"] for row in without_rl)
+    for a, b in zip(alone, without_rl):
+        assert (a["es_frames"], a["td3_frames"]) == (b["td3_frames"], 0)  # the same frames, counted as ES frames: no TD3 here
+        for column in ("eval_return", "generations", "cem_mean_std", "population_mean_return", "population_max_return"):
+            assert a[column] == b[column], column
+    assert json.loads((cem / "summary.json").read_text())["final_return"] == json.loads((tmp_path / "summary.json").read_text())["final_return"]
+
+
+@pytest.mark.e2e
 @pytest.mark.parametrize("script", SCRIPTS)
 def test_the_summary_names_what_computes_every_component_whatever_the_recipe_calls_it(finished, script):
     """The pieces and threads of ``summary.json`` come from the components a recipe builds, found by

@@ -32,8 +32,8 @@ from torchrl_esrl.run.schema import number, positive
 import torch
 
 from torchrl_esrl.es.strategy import checked_returns, strategy_holdings
-from torchrl_esrl.modules.networks import Mirrored, actor_parameters, flat_parameters, load_flat_parameters
-from torchrl_esrl.run.capacity import FLOAT, Holding
+from torchrl_esrl.modules.networks import Mirrored, flat_parameters, load_flat_parameters
+from torchrl_esrl.run.capacity import Holding
 from torchrl_esrl.threads import torch_threads
 from torchrl_esrl.torchrl_private import foreach_lerp_
 
@@ -275,7 +275,6 @@ def make_cem(cfg, actor) -> DiagonalCEM:
 
 
 def cem_holdings(cfg, sizes) -> list[Holding]:
-    """:func:`make_cem`'s CEM state and one generation (population, noise, episodes); a stop
-    within a generation (CEM-RL's gradient steps) also writes its population to the checkpoint."""
-    population = Holding("population", FLOAT * actor_parameters(cfg, sizes) * int(cfg.cem.population_size), "cem.population_size", in_memory=False)
-    return [*strategy_holdings(cfg, sizes, "cem", DiagonalCEM.HELD_COPIES), population]
+    """:func:`make_cem`'s CEM state and one generation (population, noise, episodes), for the
+    run's memory estimate (:mod:`torchrl_esrl.run.capacity`)."""
+    return strategy_holdings(cfg, sizes, "cem", DiagonalCEM.HELD_COPIES)
