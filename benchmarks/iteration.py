@@ -16,8 +16,8 @@ Per iteration: 100k frames x (env step + update) + 50 generations + 2 evaluation
 
 Each part is timed in rounds (medians). ``--compare`` also times, in the same process and
 taking turns with the fast configuration within every round, ``implementation=reference`` (stock
-TorchRL end to end, ``torchrl_esrl/run/factories.py``); each part's ratio is reported.
-``--ablation`` switches each fast piece (``factories.FAST_PIECES``) back to its reference alone,
+TorchRL end to end, ``torchrl_esrl/run/implementation.py``); each part's ratio is reported.
+``--ablation`` switches each fast piece (``FAST_PIECES``) back to its reference alone,
 the rest fast, and times the parts that piece touches in the same interleaved rounds as the fast
 configuration; each piece's saving is reported as its share of the fast paper-size iteration
 (``ablation`` in the JSON record; docs/performance.md's table). ``--plain`` also times,
@@ -40,11 +40,15 @@ from hydra import compose, initialize_config_dir
 import torch
 
 from torchrl_esrl.envs import quiet_logs
-from torchrl_esrl.run.factories import (
-    FAST_PIECES, make_actor_critic, make_es, make_es_collector, make_multibuffer, make_td3, make_frame_batches, make_threshold,
-    make_train_env,
-)
-from torchrl_esrl.modules.networks import flat_parameters
+from torchrl_esrl.collectors.es_collector import make_es_collector
+from torchrl_esrl.collectors.td3_collector import make_frame_batches
+from torchrl_esrl.data.multibuffer import make_multibuffer
+from torchrl_esrl.data.threshold import make_threshold
+from torchrl_esrl.envs import make_train_env
+from torchrl_esrl.es.openes import make_es
+from torchrl_esrl.modules.networks import flat_parameters, make_actor_critic
+from torchrl_esrl.objectives.td3 import make_td3
+from torchrl_esrl.run.implementation import FAST_PIECES
 from torchrl_esrl.run.determinism import seed_everything
 from torchrl_esrl.algorithm.td3_phase import td3_phase
 from torchrl_esrl.threads import torch_threads

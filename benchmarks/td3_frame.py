@@ -23,7 +23,10 @@ from benchmarks.iteration import paper_config
 from torchrl_esrl.collectors.td3_collector import GymTD3Collector, make_td3_collector
 from torchrl_esrl.envs import quiet_logs
 from torchrl_esrl.run.determinism import seed_everything
-from torchrl_esrl.run.factories import make_actor_critic, make_multibuffer, make_td3, make_train_env
+from torchrl_esrl.data.multibuffer import make_multibuffer
+from torchrl_esrl.envs import make_train_env
+from torchrl_esrl.modules.networks import make_actor_critic
+from torchrl_esrl.objectives.td3 import make_td3
 
 
 def run(repeats: int = 7, calls: int = 200, capacity: int = 1_000_000) -> dict:

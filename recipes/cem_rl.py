@@ -18,12 +18,21 @@ from __future__ import annotations
 
 from omegaconf import DictConfig
 
-from torchrl_esrl.algorithm.cem_rl_iteration import POPULATION_FRAMES, GenerationsProgress, cem_rl_iteration, cem_rl_metrics
+from torchrl_esrl.algorithm.cem_rl_iteration import (
+    POPULATION_FRAMES, GenerationsProgress, cem_rl_iteration, cem_rl_metrics, population_under_way_holdings,
+)
+from torchrl_esrl.collectors.es_collector import make_es_collector
+from torchrl_esrl.data.multibuffer import buffer_holdings, make_multibuffer
+from torchrl_esrl.envs import make_train_env
+from torchrl_esrl.es.cem import CEMConfig, cem_holdings, make_cem
+from torchrl_esrl.modules.networks import make_actor_critic
+from torchrl_esrl.objectives.td3 import make_td3, td3_holdings
 from torchrl_esrl.run.algorithm_info import AlgorithmInfo
-from torchrl_esrl.run.factories import buffer_holdings, cem_holdings, make_actor_critic, make_cem, make_multibuffer, make_es_collector, make_td3, make_train_env, td3_holdings
 from torchrl_esrl.run.lifecycle import Run, recipe_main
 
 ALGORITHMS = (AlgorithmInfo("cem_rl", "CEM-RL", returned="CEM mean", rank=5, td3_frames=POPULATION_FRAMES),)
+# With experiment=tiny (the tests' budget, tests/conftest.py): a population of 4 that learns from its first generation.
+TINY_OVERRIDES = ("cem.population_size=4", "cem.start_frames=0")
 
 
 def train(cfg: DictConfig, run: Run) -> dict:
@@ -46,11 +55,13 @@ def train(cfg: DictConfig, run: Run) -> dict:
 
 
 def holdings(cfg: DictConfig, sizes) -> list:
-    """What :func:`train` builds: the TD3 learner, one replay buffer, the CEM and its generation."""
-    return [*td3_holdings(cfg, sizes), *buffer_holdings(cfg, sizes, buffers=1), *cem_holdings(cfg, sizes)]
+    """What :func:`train` builds: the TD3 learner, one replay buffer, the CEM and its generation (and
+    the population a stop within its gradient steps writes)."""
+    return [*td3_holdings(cfg, sizes), *buffer_holdings(cfg, sizes, buffers=1), *cem_holdings(cfg, sizes),
+            *population_under_way_holdings(cfg, sizes)]
 
 
-main = recipe_main(train, config_name="cem_rl", algorithm=ALGORITHMS[0], holdings=holdings)
+main = recipe_main(train, config_name="cem_rl", algorithm=ALGORITHMS[0], holdings=holdings, sections={"cem": CEMConfig})
 
 if __name__ == "__main__":
     main()

@@ -16,26 +16,26 @@ from __future__ import annotations
 
 from omegaconf import DictConfig
 
-from torchrl_esrl.algorithm.cem_rl_iteration import POPULATION_FRAMES, GenerationsProgress, cem_rl_iteration, cem_rl_metrics, one_buffer, routed_by_return
-from torchrl_esrl.run.algorithm_info import AlgorithmInfo
-from torchrl_esrl.run.factories import (
-    buffer_holdings,
-    cem_holdings,
-    make_actor_critic,
-    make_cem,
-    make_es_collector,
-    make_multibuffer,
-    make_td3,
-    make_threshold,
-    make_train_env,
-    td3_holdings,
+from torchrl_esrl.algorithm.cem_rl_iteration import (
+    POPULATION_FRAMES, GenerationsProgress, cem_rl_iteration, cem_rl_metrics, one_buffer, population_under_way_holdings, routed_by_return,
 )
+from torchrl_esrl.collectors.es_collector import make_es_collector
+from torchrl_esrl.data.multibuffer import buffer_holdings, make_multibuffer
+from torchrl_esrl.data.threshold import make_threshold
+from torchrl_esrl.envs import make_train_env
+from torchrl_esrl.es.cem import CEMConfig, cem_holdings, make_cem
+from torchrl_esrl.modules.networks import make_actor_critic
+from torchrl_esrl.objectives.td3 import make_td3, td3_holdings
+from torchrl_esrl.run.algorithm_info import AlgorithmInfo
 from torchrl_esrl.run.lifecycle import Run, recipe_main
 
 ALGORITHMS = (
     AlgorithmInfo("cem_rl_buffers", "CEM-RL (return-routed buffers)", returned="CEM mean", rank=5, td3_frames=POPULATION_FRAMES),
     AlgorithmInfo("cem_rl_buffers_shared", "CEM-RL (return-routed buffers, one shared buffer)", returned="CEM mean", rank=5, td3_frames=POPULATION_FRAMES),
 )
+# With experiment=tiny (the tests' budget, tests/conftest.py): a good episode by the first generation's end,
+# so that the strict readiness rule lets the RL members learn in the second.
+TINY_OVERRIDES = ("cem.population_size=6", "cem.start_frames=0", "buffer.batch_size=32", "buffer.min_size=32", "buffer.renormalize=false")
 
 
 def train(cfg: DictConfig, run: Run) -> dict:
@@ -74,11 +74,13 @@ def algorithm(cfg: DictConfig) -> AlgorithmInfo:
 
 
 def holdings(cfg: DictConfig, sizes) -> list:
-    """What :func:`train` builds: the TD3 learner, the three buffers (one in shared mode), the CEM and its generation."""
-    return [*td3_holdings(cfg, sizes), *buffer_holdings(cfg, sizes, buffers=1 if cfg.buffer.mode == "shared" else 3), *cem_holdings(cfg, sizes)]
+    """What :func:`train` builds: the TD3 learner, the three buffers (one in shared mode), the CEM and its
+    generation (and the population a stop within its gradient steps writes)."""
+    return [*td3_holdings(cfg, sizes), *buffer_holdings(cfg, sizes, buffers=1 if cfg.buffer.mode == "shared" else 3),
+            *cem_holdings(cfg, sizes), *population_under_way_holdings(cfg, sizes)]
 
 
-main = recipe_main(train, config_name="cem_rl_buffers", algorithm=algorithm, holdings=holdings)
+main = recipe_main(train, config_name="cem_rl_buffers", algorithm=algorithm, holdings=holdings, sections={"cem": CEMConfig})
 
 if __name__ == "__main__":
     main()

@@ -11,8 +11,11 @@ from __future__ import annotations
 from omegaconf import DictConfig
 
 from torchrl_esrl.algorithm.es_phase import GenerationReturns
+from torchrl_esrl.collectors.es_collector import make_es_collector
+from torchrl_esrl.envs import make_train_env
+from torchrl_esrl.es.openes import es_holdings, make_es
+from torchrl_esrl.modules.networks import make_actor_critic
 from torchrl_esrl.run.algorithm_info import AlgorithmInfo
-from torchrl_esrl.run.factories import es_holdings, make_actor_critic, make_es, make_es_collector, make_train_env
 from torchrl_esrl.run.lifecycle import Run, recipe_main
 
 ALGORITHMS = (AlgorithmInfo("es", "OpenAI-ES", returned="ES mean", rank=6),)

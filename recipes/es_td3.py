@@ -14,25 +14,18 @@ from __future__ import annotations
 import torch
 from omegaconf import DictConfig
 
-from torchrl_esrl.collectors.td3_collector import TD3EnvState
-from torchrl_esrl.errors import check_finite
+from torchrl_esrl.algorithm.es_phase import make_es_phase
+from torchrl_esrl.algorithm.overwrite import make_overwrite_rule
 from torchrl_esrl.algorithm.td3_phase import td3_phase
-from torchrl_esrl.modules.networks import flat_parameters
-from torchrl_esrl.run.factories import (
-    buffer_holdings,
-    es_holdings,
-    make_actor_critic,
-    make_es,
-    make_es_collector,
-    make_es_phase,
-    make_multibuffer,
-    make_overwrite_rule,
-    make_td3,
-    make_frame_batches,
-    make_threshold,
-    make_train_env,
-    td3_holdings,
-)
+from torchrl_esrl.collectors.es_collector import make_es_collector
+from torchrl_esrl.collectors.td3_collector import TD3EnvState, make_frame_batches
+from torchrl_esrl.data.multibuffer import buffer_holdings, make_multibuffer
+from torchrl_esrl.data.threshold import make_threshold
+from torchrl_esrl.envs import make_train_env
+from torchrl_esrl.errors import check_finite
+from torchrl_esrl.es.openes import es_holdings, make_es
+from torchrl_esrl.modules.networks import flat_parameters, make_actor_critic
+from torchrl_esrl.objectives.td3 import make_td3, td3_holdings
 from torchrl_esrl.run.algorithm_info import AlgorithmInfo
 from torchrl_esrl.run.lifecycle import Run, recipe_main
 

@@ -11,10 +11,12 @@ from __future__ import annotations
 from omegaconf import DictConfig
 
 from torchrl_esrl.algorithm.td3_phase import td3_phase
-from torchrl_esrl.collectors.td3_collector import TD3EnvState
-from torchrl_esrl.modules.networks import flat_parameters
+from torchrl_esrl.collectors.td3_collector import TD3EnvState, make_frame_batches
+from torchrl_esrl.data.multibuffer import buffer_holdings, make_multibuffer
+from torchrl_esrl.envs import make_train_env
+from torchrl_esrl.modules.networks import flat_parameters, make_actor_critic
+from torchrl_esrl.objectives.td3 import make_td3, td3_holdings
 from torchrl_esrl.run.algorithm_info import AlgorithmInfo
-from torchrl_esrl.run.factories import buffer_holdings, make_actor_critic, make_multibuffer, make_td3, make_frame_batches, make_train_env, td3_holdings
 from torchrl_esrl.run.lifecycle import Run, recipe_main
 
 ALGORITHMS = (AlgorithmInfo("td3", "TD3", returned="TD3 actor", rank=4),)

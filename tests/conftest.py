@@ -14,8 +14,41 @@ from tensordict import TensorDict  # noqa: E402
 
 torch.set_num_threads(max(1, min(2, os.cpu_count() or 1)))
 
+from torchrl_esrl.run.algorithm_info import training_recipes  # noqa: E402
+
 ROOT = Path(__file__).resolve().parents[1]
 TINY = "experiment=tiny"  # conf/experiment/tiny.yaml: the one budget of every test that runs a recipe
+# Every recipe that trains (recipes/*.py whose main recipe_main built), by file name: the tests every
+# recipe gets are parametrized over it, so a new recipe needs no edit of the tests.
+RECIPES = training_recipes(ROOT / "recipes")
+
+
+def recipe_of(script: str):
+    """What ``recipes/<script>`` gave ``recipe_main``: its config name, schema, algorithm and holdings."""
+    return RECIPES[script].main.recipe
+
+
+def tiny_overrides(script: str) -> tuple[str, ...]:
+    """What ``recipes/<script>`` needs on top of the tests' budget (its ``TINY_OVERRIDES``, if any)."""
+    return tuple(getattr(RECIPES[script], "TINY_OVERRIDES", ()))
+
+
+def own_keys(script: str) -> list[tuple[str, object]]:
+    """``(key, field)`` of each key of the recipe's own config sections (none where it has none)."""
+    from torchrl_esrl.run.config import schema_fields
+    from torchrl_esrl.run.schema import RunConfig
+
+    every_run = {key for key, _, _ in schema_fields(RunConfig)}
+    return [(key, item) for key, item, _ in schema_fields(recipe_of(script).schema) if key not in every_run]
+
+
+def outside(check: dict):
+    """A value a key's check (``metadata["check"]`` of its schema field) refuses; None for a check without one."""
+    if check["kind"] == "number":
+        if check["high"] is not None:
+            return check["high"] + 1
+        return check["low"] if check["low_open"] else check["low"] - 1
+    return {"choice": "not_a_choice", "layers": [], "name": "' '", "host_port": "somewhere", "mapping": 3}.get(check["kind"])
 
 
 def transitions(n, fill=0.0, obs_dim=3, act_dim=1):

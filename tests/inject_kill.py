@@ -1,10 +1,11 @@
-"""Runs a real recipe that SIGKILLs itself at a chosen moment of its final stage, for the
-kill-then-rerun tests:
+"""Runs a real recipe that SIGKILLs itself at a chosen moment, for the kill-then-rerun tests:
 
     python tests/inject_kill.py <where> <recipe>.py <hydra overrides...>
 
-``where``: ``final_evaluation`` (the first final evaluation after the last iteration, with its
-checkpoint written) or ``summary_write`` (halfway through writing ``summary.json``).
+``where``: ``first_checkpoint`` (as soon as the run's first checkpoint is written, whatever the
+recipe checkpoints first), ``final_evaluation`` (the first final evaluation after the last
+iteration, with its checkpoint written) or ``summary_write`` (halfway through writing
+``summary.json``).
 """
 import importlib.util
 import os
@@ -12,11 +13,12 @@ import signal
 import sys
 from pathlib import Path
 
+from torchrl_esrl.run.checkpoint import RunCheckpoint
 from torchrl_esrl.run.harness import RunHarness
 from torchrl_esrl.run.lifecycle import Run
 
 RECIPES = Path(__file__).resolve().parents[1] / "recipes"
-WHERE = ("final_evaluation", "summary_write")
+WHERE = ("first_checkpoint", "final_evaluation", "summary_write")
 
 
 def kill() -> None:
@@ -34,7 +36,15 @@ def main(where: str, script: str, overrides: list[str]) -> None:
         looped["done"] = True  # the last iteration's checkpoint is written
 
     Run.iterations = watched
-    if where == "final_evaluation":
+    if where == "first_checkpoint":
+        save = RunCheckpoint.save
+
+        def saved_once(self):
+            save(self)
+            kill()
+
+        RunCheckpoint.save = saved_once
+    elif where == "final_evaluation":
         evaluate_final = RunHarness.evaluate_final
 
         def killed(self, vector):

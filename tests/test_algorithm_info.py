@@ -4,16 +4,22 @@ algorithm (one recipe, one config) needs no edit of the report."""
 import dataclasses
 from pathlib import Path
 
+from conftest import RECIPES
+
 from torchrl_esrl.report import Algorithms, pairwise_table, results_table, summary_table, write_summary_table, write_table
 from torchrl_esrl.run.algorithm_info import AlgorithmInfo, discover
 
 ROOT = Path(__file__).resolve().parents[1]
+# The rows of the paper's report, in its order; any other recipe's rows fall in by their rank.
+PAPER_REPORT_ORDER = ["es_td3_buffers", "es_td3_buffers_soft", "es_td3_shared", "es_td3_shared_soft", "td3", "cem_rl", "cem_rl_buffers", "cem_rl_buffers_shared", "es"]
 
 
 def test_discover_reads_every_recipe_and_orders_the_rows_as_the_paper_report_did():
     infos = discover(ROOT / "recipes")  # recipes/report.py among them: it declares none and runs nothing on import
     order = sorted(infos, key=lambda name: Algorithms(infos).row_order((name, "")))
-    assert order == ["es_td3_buffers", "es_td3_buffers_soft", "es_td3_shared", "es_td3_shared_soft", "td3", "cem_rl", "cem_rl_buffers", "cem_rl_buffers_shared", "es"]
+    assert [name for name in order if name in PAPER_REPORT_ORDER] == PAPER_REPORT_ORDER
+    assert set(infos) == {info.name for module in RECIPES.values() for info in module.ALGORITHMS}  # every training recipe says what it runs
+    assert "report.py" not in RECIPES and len(RECIPES) == len(list((ROOT / "recipes").glob("*.py"))) - 1  # a script that trains nothing is left out
     assert (infos["es_td3_shared_soft"].label, infos["td3"].returned, infos["cem_rl"].returned) == (
         "ES-TD3 (one shared buffer, soft overwrite)", "TD3 actor", "CEM mean")
 

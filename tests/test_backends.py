@@ -5,7 +5,7 @@ from hydra import compose, initialize_config_dir
 
 from torchrl_esrl.collectors.backends import LOCAL_BACKENDS, resolve_backend
 from torchrl_esrl.errors import ConfigError
-from torchrl_esrl.run.factories import es_backend
+from torchrl_esrl.collectors.backends import es_backend
 from tests.conftest import ROOT
 
 

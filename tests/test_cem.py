@@ -1,10 +1,15 @@
-"""CEM-RL's diagonal CEM update (Pourchot and Sigaud 2019) and its TD3 member step."""
+"""CEM-RL's diagonal CEM update (Pourchot and Sigaud 2019), its TD3 member step and its config section."""
 import math
 
 import pytest
 import torch
+from conftest import ROOT
+from hydra import compose, initialize_config_dir
+from omegaconf import OmegaConf
 
-from torchrl_esrl.es.cem import DiagonalCEM, elite_weights
+from torchrl_esrl.errors import ConfigError
+from torchrl_esrl.es.cem import CEMConfig, DiagonalCEM, elite_weights
+from torchrl_esrl.run.config import validate_config
 
 
 def test_elite_weights_are_log_rank_weights_summing_to_one():
@@ -260,3 +265,17 @@ def test_cem_set_mean_and_non_finite_returns():
     with pytest.raises(FloatingPointError, match="non-finite"):
         cem.tell(population, torch.tensor([1.0, float("nan"), 0.0, 2.0]))
     assert cem.generation == 0 and torch.equal(cem.mean, torch.full((3,), 2.0))
+
+
+def test_the_cem_section_refuses_an_odd_antithetic_population_in_one_line_as_the_reference_asserts():
+    """sepCEM asserts an even population with antithetic sampling (the authors' ``ES.py``); the
+    section's own check says so before any work, naming the key, instead of sampling without pairs."""
+    CEMConfig.check(OmegaConf.structured(CEMConfig), "cem")  # the defaults: 10, antithetic
+    CEMConfig.check(OmegaConf.structured(CEMConfig(population_size=5, antithetic=False)), "cem")
+    with pytest.raises(ConfigError) as error:
+        CEMConfig.check(OmegaConf.structured(CEMConfig(population_size=5)), "cem")
+    assert str(error.value) == "cem.population_size: 5 is invalid with cem.antithetic=true (allowed: an even integer >= 2)"
+    with initialize_config_dir(str(ROOT / "conf"), version_base="1.3"):  # a recipe's config: validate_config runs the section's check
+        cfg = compose("cem_rl", overrides=["cem.population_size=5"])
+    with pytest.raises(ConfigError, match=r"^cem\.population_size: 5 is invalid with cem\.antithetic=true"):
+        validate_config(cfg)

@@ -1,5 +1,6 @@
-"""The config every recipe composes (torchrl_esrl/run/schema.py, conf/): every recipe x env x
-experiment preset composes and passes the value checks, with Hydra's compose API.
+"""The config every recipe composes (torchrl_esrl/run/schema.py, a recipe's own sections, conf/):
+every recipe x env x experiment preset composes and passes the value checks, with Hydra's compose
+API; the recipes are found in recipes/ (tests/conftest.py's ``RECIPES``).
 
 ``python tests/test_config_schema.py DIR`` writes each composition, resolved, to ``DIR`` (one YAML
 file per recipe, env and preset, and Hydra's own settings beside it): two checkouts' dumps
@@ -11,14 +12,13 @@ import sys
 from pathlib import Path
 
 import pytest
+from conftest import RECIPES, outside, own_keys, recipe_of
 from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
-import torchrl_esrl  # noqa: F401  registers the typed schema with Hydra's ConfigStore
-
 ROOT = Path(__file__).resolve().parents[1]
 CONF = ROOT / "conf"
-RECIPE_CONFIGS = ("config", "td3", "es", "cem_rl", "cem_rl_buffers")  # recipes/es_td3.py, td3.py, es.py, cem_rl.py, cem_rl_buffers.py
+RECIPE_CONFIGS = tuple(recipe_of(script).config_name for script in RECIPES)  # each schema registered as its recipe was loaded
 ENVS = (None, *sorted(p.stem for p in (CONF / "env").glob("*.yaml")))  # None: the config's own choice
 EXPERIMENTS = (None, *sorted(p.stem for p in (CONF / "experiment").glob("*.yaml")))
 HYDRA_KEYS = ("callbacks", "job.chdir", "run", "sweep", "job_logging", "runtime.choices")  # what conf/ sets of Hydra's node
@@ -71,49 +71,44 @@ def _leaves(node, prefix=""):
             yield f"{prefix}{key}", value
 
 
-TOP_CONFIGS = ("config", "es", "td3", "cem_rl")  # the recipe configs that list the schema themselves
-
-
 def test_yaml_files_hold_only_what_differs_from_the_schema_defaults():
-    from torchrl_esrl.run import schema
-
-    defaults = dict(_leaves(OmegaConf.to_container(OmegaConf.structured(schema.RunConfig))))
-    defaults.update(_leaves({"cem": OmegaConf.to_container(OmegaConf.structured(schema.CEMConfig))}))  # None until a recipe sets it
+    defaults = {}
+    for script in RECIPES:  # every run's keys and each recipe's own sections
+        defaults.update(_leaves(OmegaConf.to_container(OmegaConf.structured(recipe_of(script).schema))))
     files = [*(CONF / f"{c}.yaml" for c in RECIPE_CONFIGS), CONF / "common.yaml", *(CONF / "env").glob("*.yaml"), *(CONF / "experiment").glob("*.yaml")]
     for path in files:
         content = OmegaConf.to_container(OmegaConf.load(path)) or {}
         prefix = "env." if path.parent.name == "env" else ""
         for key, value in _leaves({k: v for k, v in content.items() if k not in ("defaults", "hydra")}, prefix):
             assert key in defaults, f"{path.name}: {key} is not a schema key"
-            assert value != defaults[key], f"{path.name}: {key}: {value!r} is the schema's default (torchrl_esrl/run/schema.py); write it once"
-    for config in TOP_CONFIGS:  # each recipe's top config composes the one schema first
-        assert OmegaConf.load(CONF / f"{config}.yaml").defaults[0] == schema.SCHEMA_NAME
-    for config in RECIPE_CONFIGS:
-        assert OmegaConf.get_type(composed(config)) is schema.RunConfig
+            assert value != defaults[key], f"{path.name}: {key}: {value!r} is the schema's default (torchrl_esrl/run/schema.py, or the section's own); write it once"
+    for script in RECIPES:  # each recipe's top config composes its schema, listed first
+        recipe = recipe_of(script)
+        assert OmegaConf.load(CONF / f"{recipe.config_name}.yaml").defaults[0] == recipe.schema_name, script
+        assert OmegaConf.get_type(composed(recipe.config_name)) is recipe.schema, script
 
 
 def test_nothing_under_run_or_report_names_an_algorithm():
     """The run plumbing and the report serve any recipe: no recipe's or algorithm's name is in their
     code, except the names that are also a component's config section (``td3``, ``es``: TD3 and
     OpenAI-ES). The paper's table is data (``docs/results/paper_table1.csv``)."""
-    from torchrl_esrl.run import schema
-
-    recipes = [p for p in (ROOT / "recipes").glob("*.py") if p.stem != "report"]
+    recipes = [ROOT / "recipes" / script for script in RECIPES]
     names = {p.stem for p in recipes} | {name for p in recipes for name in re.findall(r'AlgorithmInfo\(\s*"(\w+)"', p.read_text())}
-    names -= {item for item in schema.RunConfig.__dataclass_fields__}
+    names -= {item for script in RECIPES for item in recipe_of(script).schema.__dataclass_fields__}
     assert {"es_td3", "cem_rl_buffers", "es_td3_buffers", "cem_rl_buffers_shared"} <= names
     for path in [*(ROOT / "torchrl_esrl" / "run").glob("*.py"), *(ROOT / "torchrl_esrl" / "report").glob("*.py")]:
         found = names & set(re.findall(r"\w+", path.read_text()))
         assert not found, f"{path.name} names {sorted(found)}"
 
 
-def test_every_key_has_its_default_and_every_free_value_a_check():
-    from torchrl_esrl.run import schema
+@pytest.mark.parametrize("script", sorted(RECIPES))
+def test_every_key_has_its_default_and_every_free_value_a_check(script):
     from torchrl_esrl.run.config import CHECKS, schema_fields, section_of
 
-    assert OmegaConf.missing_keys(OmegaConf.structured(schema.RunConfig)) == {"env.name", "env.id"}  # the env group's choice
+    schema = recipe_of(script).schema
+    assert OmegaConf.missing_keys(OmegaConf.structured(schema)) == {"env.name", "env.id"}  # the env group's choice
     unchecked = set()
-    for key, item, annotation in schema_fields(schema.RunConfig):
+    for key, item, annotation in schema_fields(schema):
         check = item.metadata.get("check")
         if check is not None:
             assert check["kind"] in CHECKS, key
@@ -123,45 +118,87 @@ def test_every_key_has_its_default_and_every_free_value_a_check():
     assert unchecked == {"env.name", "env.kwargs", "env.wrappers", "env.transforms", "resume"}
 
 
-def _outside(check: dict):
-    """A value the check refuses."""
-    if check["kind"] == "number":
-        if check["high"] is not None:
-            return check["high"] + 1
-        return check["low"] if check["low_open"] else check["low"] - 1
-    return {"choice": "not_a_choice", "layers": [], "name": "' '", "host_port": "somewhere", "mapping": 3}.get(check["kind"])
+def _refused_in_one_line(config: str, key: str, value) -> None:
+    from torchrl_esrl.errors import ConfigError
+    from torchrl_esrl.run.config import validate_config
+
+    cfg = composed(config, experiment="tiny", extra=[f"{key}={value}"])
+    with pytest.raises(ConfigError) as error:
+        validate_config(cfg)
+    message = str(error.value)
+    assert message.startswith(f"{key}: ") and "allowed" in message and "\n" not in message, (key, message)
 
 
 def test_each_keys_check_refuses_a_value_outside_it_in_one_line():
-    from torchrl_esrl.errors import ConfigError
-    from torchrl_esrl.run import schema
-    from torchrl_esrl.run.config import schema_fields, validate_config
+    from torchrl_esrl.run.config import schema_fields
+    from torchrl_esrl.run.schema import RunConfig
 
     checked = 0
-    for key, item, _ in schema_fields(schema.RunConfig):
+    for key, item, _ in schema_fields(RunConfig):
         check = item.metadata.get("check")
-        value = _outside(check) if check else None
-        if value is None:
-            continue
-        cfg = composed("cem_rl", experiment="tiny", extra=[f"{key}={value}"])
-        with pytest.raises(ConfigError) as error:
-            validate_config(cfg)
-        message = str(error.value)
-        assert message.startswith(f"{key}: ") and "allowed" in message and "\n" not in message, (key, message)
-        checked += 1
+        value = outside(check) if check else None
+        if value is not None:
+            _refused_in_one_line("config", key, value)
+            checked += 1
     assert checked >= 45
 
 
+@pytest.mark.parametrize("script", sorted(RECIPES))
+def test_each_key_of_a_recipes_own_sections_refuses_a_value_outside_it_in_one_line(script):
+    """The keys a recipe declares beside itself or its component (``recipe_main``'s ``sections``)
+    are checked as every run's are."""
+    config = recipe_of(script).config_name
+    for key, item in own_keys(script):
+        check = item.metadata.get("check")
+        if check and outside(check) is not None:
+            _refused_in_one_line(config, key, outside(check))
+
+
 def test_renamed_and_added_keys_come_from_the_schema_and_old_configs_resume_in_todays_names():
-    from torchrl_esrl.run.config import ADDED, RENAMED
+    from torchrl_esrl.run.config import added_keys, renamed_keys
     from torchrl_esrl.run.resume import in_todays_names
 
-    assert set(RENAMED) == {"td3.fast", "mode"} and ADDED == {"env.kwargs": {}, "env.wrappers": [], "env.transforms": [], "td3.precision": "fp32"}
+    assert set(renamed_keys()) == {"td3.fast", "mode"} and added_keys() == {"env.kwargs": {}, "env.wrappers": [], "env.transforms": [], "td3.precision": "fp32"}
     old = {"implementation": "fast", "mode": "async", "td3": {"fast": False, "lr": 0.1}, "es": {"sigma": 0.1}, "env": {"id": "Walker2d-v5"}}
     today = in_todays_names(old)
     assert today == {"implementation": "reference", "mode": None, "td3": {"fast": None, "lr": 0.1, "precision": "fp32"}, "es": {"sigma": 0.1, "schedule": "async"},
                      "env": {"id": "Walker2d-v5", "kwargs": {}, "wrappers": [], "transforms": []}}
     assert old["td3"]["fast"] is False and "kwargs" not in old["env"]  # the saved config itself is left as it is
+
+
+def _algorithm_recipes() -> dict[str, str]:
+    """Each algorithm name a run's ``summary.json`` can hold -> the recipe that writes it."""
+    return {info.name: script for script, module in RECIPES.items() for info in module.ALGORITHMS}
+
+
+COMMITTED_RUNS = sorted(path.parent for path in (ROOT / "docs" / "results" / "runs").rglob("config.yaml"))
+
+
+def test_the_committed_runs_configs_read_as_their_recipes_configs_today():
+    """The saved config of a committed run of today's keys (every section of every recipe's config,
+    those its recipe does not read null, as the code that ran it wrote them), read in today's names
+    for its recipe, holds exactly the keys its recipe's config holds today and passes today's checks:
+    such a run, killed, resumes under today's code (a resume compares the saved config with the
+    command's, key by key). Runs older than a key added without ``added`` never could."""
+    import json
+
+    from torchrl_esrl.run.config import validate_config
+    from torchrl_esrl.run.resume import in_todays_names
+
+    recipes, keys, read = _algorithm_recipes(), {}, {}
+    for run in COMMITTED_RUNS:
+        script = recipes[json.loads((run / "summary.json").read_text())["algorithm"]]
+        recipe = recipe_of(script)
+        if script not in keys:
+            keys[script] = {key for key, _ in _leaves(OmegaConf.to_container(composed(recipe.config_name), resolve=True))}
+        saved = OmegaConf.to_container(OmegaConf.load(run / "config.yaml"))
+        if not keys[script] <= {key for key, _ in _leaves(in_todays_names(saved))}:
+            continue  # older than a key today's config has
+        today = in_todays_names(saved, recipe.schema)
+        assert {key for key, _ in _leaves(today)} == keys[script], (run, {key for key, _ in _leaves(today)} ^ keys[script])
+        validate_config(OmegaConf.create(today), recipe.schema)
+        read[script] = read.get(script, 0) + 1
+    assert set(read) >= {"es_td3.py", "td3.py", "es.py", "cem_rl.py", "cem_rl_buffers.py"} and sum(read.values()) >= 100, read
 
 
 @pytest.mark.parametrize("override, config", [("td3.fast=true", "config"), ("mode=async", "td3")])
@@ -173,7 +210,8 @@ def test_a_renamed_key_names_what_replaced_it(override, config):
         validate_config(composed(config, extra=[override]))
 
 
-PLUS_OVERRIDES = [(c, o) for c in RECIPE_CONFIGS for o in ("+td3.lrr=0.1", "++td3.lrr=0.1", "+lrr=1", "++es.lrr=1")] + [("cem_rl", "++cem.lrr=1")]
+PLUS_OVERRIDES = [(recipe_of(s).config_name, o) for s in RECIPES for o in ("+td3.lrr=0.1", "++td3.lrr=0.1", "+lrr=1", "++es.lrr=1")] + [
+    (recipe_of(s).config_name, f"++{section}.lrr=1") for s in RECIPES for section in sorted({key.split(".")[0] for key, _ in own_keys(s)})]  # a recipe's own sections
 
 
 @pytest.mark.parametrize("config, override", PLUS_OVERRIDES)

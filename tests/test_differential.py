@@ -6,7 +6,7 @@ and initial weights: one ES generation (6 members, 50 steps), one evaluation epi
 TD3 frames, the buffers' writes and one sampled batch, and 4 TD3 updates on that same batch. The
 test proves, part by part of the run:
 
-- each part where :func:`torchrl_esrl.run.factories.implementations` says a fast piece ran gives
+- each part where :func:`torchrl_esrl.run.implementation.implementations` says a fast piece ran gives
   the reference's outputs up to float32 rounding (bit for bit where the project claims it: the TD3
   collector, the buffers, the ES physics). ES episodes played by the fast population forward are
   checked step by step: each action is the actor module's on the recorded observation, and the
@@ -34,13 +34,15 @@ from hydra import compose, initialize_config_dir
 from tensordict import TensorDict
 from torch import nn
 
-from torchrl_esrl.collectors.td3_collector import TD3EnvState
-from torchrl_esrl.data.multibuffer import TRANSITION_KEYS
-from torchrl_esrl.envs import EnvSpec, quiet_logs
+from torchrl_esrl.collectors.es_collector import make_es_collector, make_evaluator
+from torchrl_esrl.collectors.td3_collector import TD3EnvState, make_frame_batches
+from torchrl_esrl.data.multibuffer import TRANSITION_KEYS, make_multibuffer
+from torchrl_esrl.envs import EnvSpec, make_train_env, quiet_logs
 from torchrl_esrl.errors import ConfigError
-from torchrl_esrl.modules.networks import flat_parameters
-from torchrl_esrl.objectives.td3 import TD3
-from torchrl_esrl.run import factories
+from torchrl_esrl.es.openes import make_es
+from torchrl_esrl.modules.networks import flat_parameters, make_actor_critic
+from torchrl_esrl.objectives.td3 import TD3, make_td3
+from torchrl_esrl.run.implementation import FAST_PIECES, implementation_line, implementations
 from torchrl_esrl.threads import torch_threads
 
 CONF = Path(__file__).resolve().parents[1] / "conf"
@@ -54,7 +56,7 @@ SMALL = (
 GENERATION_SEEDS, EVALUATION_SEEDS = list(range(10, 16)), [20]  # episodes' reset seeds
 UPDATES = 4  # two critic-only updates and two with the actor and targets (policy_delay 2)
 
-# The parts of a run, and the pieces of factories.FAST_PIECES that compute each.
+# The parts of a run, and the pieces of FAST_PIECES that compute each.
 PARTS = {
     "es_generation": ("es_forward", "es_physics"),
     "evaluation": ("es_forward",),  # the evaluator always steps gymnasium; its forward is the piece
@@ -186,7 +188,7 @@ def td3_built(td3_class: type[TD3] = TD3, loss: Callable[[type], type] | None = 
     (``num_qvalue_nets``) passed on."""
 
     def build(cfg, actor, critic, action_spec):
-        chosen = factories.make_td3(cfg, copy.deepcopy(actor), copy.deepcopy(critic), action_spec)
+        chosen = make_td3(cfg, copy.deepcopy(actor), copy.deepcopy(critic), action_spec)
         c = cfg.td3
         torch.manual_seed(1)  # as the run seeds make_td3 (TD3Loss draws the second critic)
         return td3_class(
@@ -204,7 +206,7 @@ def td3_edited(edit: Callable[[TD3], None]):
     """``make_td3``'s TD3, then ``edit(td3)`` (hooks, frozen parameters) before it trains."""
 
     def build(cfg, actor, critic, action_spec):
-        td3 = factories.make_td3(cfg, actor, critic, action_spec)
+        td3 = make_td3(cfg, actor, critic, action_spec)
         edit(td3)
         return td3
 
@@ -470,24 +472,24 @@ def play(case: Case, cfg, write=None) -> Played:
     None: this run's."""
     quiet_logs()
     torch.manual_seed(0)
-    env = factories.make_train_env(cfg)
-    actor, critic = factories.make_actor_critic(cfg, env)
+    env = make_train_env(cfg)
+    actor, critic = make_actor_critic(cfg, env)
     if case.networks is not None:
         actor, critic = case.networks(actor, critic)
     torch.manual_seed(1)
-    td3 = (case.td3 or factories.make_td3)(cfg, actor, critic, env.action_spec)
+    td3 = (case.td3 or make_td3)(cfg, actor, critic, env.action_spec)
 
-    es, es_collector = factories.make_es(cfg, actor), factories.make_es_collector(cfg, actor)
+    es, es_collector = make_es(cfg, actor), make_es_collector(cfg, actor)
     population = es.ask()
     generation = es_collector.evaluate(population, GENERATION_SEEDS, mirrored=es.mirrored(population))
-    evaluator = factories.make_evaluator(cfg, actor)
+    evaluator = make_evaluator(cfg, actor)
     vector = flat_parameters(actor)
     evaluation = evaluator.evaluate_policy(vector, 1, EVALUATION_SEEDS)
     torch.manual_seed(2)  # the exploration noise
-    collector, batches = factories.make_frame_batches(cfg, env, td3)
+    collector, batches = make_frame_batches(cfg, env, td3)
     frames = next(batches)
 
-    buffer = factories.make_multibuffer(cfg)
+    buffer = make_multibuffer(cfg)
     fed_generation, fed_frames = write if write is not None else (generation, frames)
     good = fed_generation.returns >= fed_generation.returns.median()
     buffer.extend(fed_generation.transitions[fed_generation.member_mask(good)], "good")
@@ -496,8 +498,8 @@ def play(case: Case, cfg, write=None) -> Played:
     torch.manual_seed(3)
     sample = buffer.sample()
 
-    pieces = factories.implementations(cfg, td3=td3, td3_env=TD3EnvState(collector), buffer=buffer, es_collector=es_collector)
-    evaluation_forward = factories.implementations(cfg, es_collector=evaluator)["es_forward"]
+    pieces = implementations(cfg, td3=td3, td3_env=TD3EnvState(collector), buffer=buffer, es_collector=es_collector)
+    evaluation_forward = implementations(cfg, es_collector=evaluator)["es_forward"]
     collector.shutdown()
     outputs = {
         "es_generation": {"returns": generation.returns, "lengths": generation.lengths, **_transitions(generation.transitions, EPISODE_KEYS)},
@@ -506,7 +508,7 @@ def play(case: Case, cfg, write=None) -> Played:
         "buffer": {"sizes": torch.tensor(list(buffer.sizes().values())), **_transitions(sample, (*TRANSITION_KEYS, buffer.source_key))},
     }
     episodes = {"es_generation": (generation, population, GENERATION_SEEDS), "evaluation": (evaluation, vector.unsqueeze(0), EVALUATION_SEEDS)}
-    return Played(outputs, pieces, evaluation_forward, td3, generation, frames, sample, episodes, factories.make_env_spec(cfg), copy.deepcopy(actor))
+    return Played(outputs, pieces, evaluation_forward, td3, generation, frames, sample, episodes, EnvSpec.from_config(cfg.env), copy.deepcopy(actor))
 
 
 def train(td3: TD3, batch) -> dict[str, torch.Tensor]:
@@ -632,7 +634,7 @@ def fast_against_reference(case: Case):
     """The row's two runs, part by part (see the module's docstring); the reference's run."""
     reference, fast = run_row(case, (*case.given, *case.overrides))
     assert set(reference.pieces.values()) == {"reference"} and reference.evaluation_forward == "reference"
-    assert set(fast.pieces) == set(factories.FAST_PIECES)
+    assert set(fast.pieces) == set(FAST_PIECES)
     assert {piece: fast.pieces[piece] for piece in case.pieces} == case.pieces, fast.pieces
     assert all(what == "fast" or what.startswith("reference (") for what in fast.pieces.values()), f"a hand-over without its reason: {fast.pieces}"
     largest = {}
@@ -645,7 +647,7 @@ def fast_against_reference(case: Case):
             largest[part] = check_episodes(fast, part, reference.actor, label)
         else:  # every piece handed over, or only the physics is fast (bit for bit): the reference's episodes
             largest[part] = compare(reference.outputs[part], fast.outputs[part], (TOLERANCE | case.tolerance).get(part) if "fast" in what else None, label)
-    print(f"{case.id}: {factories.implementation_line(fast.pieces)}; evaluation es_forward {fast.evaluation_forward}; largest |fast - reference| {largest}")
+    print(f"{case.id}: {implementation_line(fast.pieces)}; evaluation es_forward {fast.evaluation_forward}; largest |fast - reference| {largest}")
     if not case.changed:
         _UNCHANGED.setdefault((case.env, case.given), reference.outputs)
         if not case.given:  # the registered tasks, as gymnasium defines them: every piece is fast

@@ -11,7 +11,10 @@ from torchrl_esrl.collectors.td3_collector import GymTD3Collector
 from torchrl_esrl.envs import make_env, make_gym_env
 from torchrl_esrl.modules.networks import Mirrored, ModulePopulation, PopulationActor, flat_parameters, load_flat_parameters, make_actor, make_critic
 from torchrl_esrl.objectives.td3 import TD3, ForeachSoftUpdate, ManualGradTD3Loss
-from torchrl_esrl.run.factories import FAST_PIECES, es_population, make_td3, make_frame_batches
+from torchrl_esrl.collectors.td3_collector import make_frame_batches
+from torchrl_esrl.modules.networks import es_population
+from torchrl_esrl.objectives.td3 import make_td3
+from torchrl_esrl.run.implementation import FAST_PIECES
 
 FAST = {"loss_class": ManualGradTD3Loss, "target_update_class": ForeachSoftUpdate, "optimizer_impl": "fused"}  # make_td3's fast pieces
 
@@ -100,8 +103,9 @@ def test_a_random_actor_never_plays_in_the_batched_physics_and_one_seed_gives_on
     line, ``auto`` and the factory give the gym reference (with the reason in the pieces line),
     and the same seed gives the same generation twice. A deterministic module (ELU) still plays there."""
     from torchrl_esrl.collectors.mujoco_batch import MujocoBatchBackend
+    from torchrl_esrl.collectors.es_collector import make_es_collector
     from torchrl_esrl.errors import ConfigError
-    from torchrl_esrl.run import factories
+    from torchrl_esrl.run.implementation import implementations
 
     env = make_env("hopper")
     actor = _dropout_actor(env)
@@ -114,9 +118,9 @@ def test_a_random_actor_never_plays_in_the_batched_physics_and_one_seed_gives_on
         ESCollector("hopper", actor, backend="mujoco_batch", population=ModulePopulation)
     assert "\n" not in str(error.value) and str(error.value).startswith("es.backend: mujoco_batch cannot play this actor")
     cfg = OmegaConf.create({"implementation": "fast", "seed": 0, "env": {"id": "hopper", "max_episode_steps": 5}, "es": {"backend": "auto"}})
-    collector = factories.make_es_collector(cfg, actor)
+    collector = make_es_collector(cfg, actor)
     assert collector.backend.name == "gym"
-    assert factories.implementations(cfg, es_collector=collector)["es_physics"].startswith("reference (actor: its forward draws random numbers")
+    assert implementations(cfg, es_collector=collector)["es_physics"].startswith("reference (actor: its forward draws random numbers")
     params = flat_parameters(actor).expand(4, -1)
     generations = []
     for _ in range(2):

@@ -6,7 +6,8 @@ import numpy as np
 from hydra import compose, initialize_config_dir
 
 from torchrl_esrl.modules.networks import flat_parameters
-from torchrl_esrl.run.factories import make_actor_critic, make_train_env
+from torchrl_esrl.envs import make_train_env
+from torchrl_esrl.modules.networks import make_actor_critic
 from torchrl_esrl.run.harness import RunHarness, final_episode_seeds
 
 ROOT = Path(__file__).resolve().parents[1]

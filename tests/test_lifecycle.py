@@ -1,5 +1,6 @@
 """The run lifecycle (torchrl_esrl/run/lifecycle.py) on the real recipes in real subprocesses:
-determinism, SIGKILL then resume for every recipe, bad configs as one line, NaN faults that
+determinism, SIGKILL and SIGTERM then resume for every recipe (found in recipes/, tests/conftest.py's
+``RECIPES``, each with the overrides it declares beside it), bad configs as one line, NaN faults that
 stop the run and keep the last checkpoint loadable, and what users do to runs: rerun finished
 ones, kill them in their final stage, damage checkpoints, point a recipe at another run's
 directory, ask for tasks or sizes the algorithm or the machine cannot take, fill the disk (a
@@ -20,7 +21,7 @@ from pathlib import Path
 
 import pytest
 import torch
-from conftest import ROOT, TINY, load_recipe, recipe_command
+from conftest import RECIPES, ROOT, TINY, load_recipe, outside, own_keys, recipe_command, recipe_of, tiny_overrides
 
 from torchrl_esrl.run.metrics import read_metrics
 
@@ -49,7 +50,8 @@ THREADS = {"1": ENV, "default": {k: v for k, v in ENV.items() if k != "OMP_NUM_T
 
 
 def command(run_dir, *extra, script="es_td3.py"):
-    return recipe_command(script, *RESUME, *extra, f"hydra.run.dir={run_dir}")
+    """The recipe with the budget above, what it declares it needs on top of it, then ``extra``."""
+    return recipe_command(script, *RESUME, *tiny_overrides(script), *extra, f"hydra.run.dir={run_dir}")
 
 
 def run(run_dir, *extra, env=None, script="es_td3.py"):
@@ -66,9 +68,9 @@ def checkpoints(run_dir):
     return sorted(p.name for p in directory.glob("checkpoint-*")) if directory.exists() else []
 
 
-def start_and_kill(run_dir, ready, delay=0.0, *extra, script="es_td3.py", env=None):
+def start_and_kill(run_dir, ready, delay=0.0, *extra, script="es_td3.py"):
     """Start the recipe, SIGKILL it once ``ready()`` holds (plus ``delay`` seconds)."""
-    process = subprocess.Popen(command(run_dir, *extra, script=script), cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env or ENV)
+    process = subprocess.Popen(command(run_dir, *extra, script=script), cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=ENV)
     try:
         deadline = time.monotonic() + 900
         while not ready() and process.poll() is None and time.monotonic() < deadline:
@@ -192,21 +194,9 @@ VALUE_ERRORS = [
 ]
 
 
-CEM_VALUE_ERRORS = [  # conf/cem_rl.yaml's own section
-    ("cem.population_size=1", "cem.population_size"),
-    ("cem.rl_fraction=1.5", "cem.rl_fraction"),
-    ("cem.elite_fraction=0", "cem.elite_fraction"),
-    ("cem.sigma_init=0", "cem.sigma_init"),
-    ("cem.damping_init=-1", "cem.damping_init"),
-    ("cem.damping_end=-1", "cem.damping_end"),
-    ("cem.damping_tau=2", "cem.damping_tau"),
-    ("cem.start_frames=-1", "cem.start_frames"),
-]
-
-
 @pytest.mark.parametrize(
     "config, override, field",
-    [("config", *case) for case in VALUE_ERRORS] + [(config, *case) for config in ("cem_rl", "cem_rl_buffers") for case in CEM_VALUE_ERRORS]
+    [("config", *case) for case in VALUE_ERRORS]
     + [("cem_rl_buffers", "buffer.ratio=[0.5,0.2]", "buffer.ratio"), ("cem_rl_buffers", "threshold.fraction=2", "threshold.fraction")],
 )
 def test_bad_value_gives_a_one_line_error_naming_the_field(tmp_path, config, override, field):
@@ -297,43 +287,8 @@ def test_injected_nan_stops_the_run_and_keeps_the_last_checkpoint(tmp_path, wher
     assert len(read_metrics(tmp_path / "metrics.csv")) == 3
 
 
-# CEM-RL with routed buffers: a good episode by the first generation's end, so the strict readiness rule lets it learn in the second.
-CEM_RL_BUFFERS = ["cem.population_size=6", "cem.start_frames=0", "buffer.batch_size=32", "buffer.min_size=32", "buffer.renormalize=false"]
-# The baselines resume too: a mid-phase checkpoint of TD3; iteration boundaries of ES and CEM-RL.
-BASELINES = [
-    ("td3.py", [], "checkpoint-000000000100"),
-    ("es.py", ["iterations=4"], "checkpoint-000000000001"),
-    ("cem_rl.py", ["iterations=4", "cem.population_size=4", "cem.start_frames=0"], None),  # None: its first checkpoint
-    ("cem_rl_buffers.py", ["iterations=4", *CEM_RL_BUFFERS], None),
-]
-
-
-@pytest.mark.e2e
-@pytest.mark.parametrize("threads", list(THREADS))
-@pytest.mark.parametrize("script, extra, first_checkpoint", BASELINES, ids=[b[0] for b in BASELINES])
-def test_baseline_killed_then_resumed_gives_the_same_metrics(tmp_path, script, extra, first_checkpoint, threads):
-    env = THREADS[threads]
-    reference = tmp_path / "reference"
-    result = run(reference, *extra, script=script, env=env)
-    assert result.returncode == 0, result.stderr[-3000:]
-    killed = tmp_path / "killed"
-    written = (lambda: first_checkpoint in checkpoints(killed)) if first_checkpoint else (lambda: bool(checkpoints(killed)))
-    returncode = start_and_kill(killed, written, 0.0, *extra, script=script, env=env)
-    assert returncode == -signal.SIGKILL
-    assert len(rows_without_wall_time(killed)) < len(rows_without_wall_time(reference))  # killed mid-run
-    result = run(killed, *extra, script=script, env=env)
-    assert result.returncode == 0, result.stderr[-3000:]
-    assert rows_without_wall_time(killed) == rows_without_wall_time(reference)
-    record = (killed / script.replace(".py", ".log")).read_text()  # the run's record: both pieces, in order
-    assert record.count("] started: ") == 1 and record.count("] resumed at iteration ") == 1 and "] finished: " in record
-    assert record.index("] started: ") < record.index("] resumed at iteration ") < record.index("] finished: ")
-
-
-# ---------------------------------------------------------------- runs that survive what users do
-# Every recipe, finished once with the budget above (iterations=2); CEM-RL with a small population
-# that learns from the first generation.
-RECIPES = {"es_td3.py": [], "td3.py": [], "es.py": [], "cem_rl.py": ["cem.population_size=4", "cem.start_frames=0"], "cem_rl_buffers.py": CEM_RL_BUFFERS}
-CONFIGS = {"es_td3.py": "config", "td3.py": "td3", "es.py": "es", "cem_rl.py": "cem_rl", "cem_rl_buffers.py": "cem_rl_buffers"}
+# ---------------------------------------------------------------- every recipe, as users run it
+SCRIPTS = sorted(RECIPES)  # recipes/*.py that train; each with its declared overrides (command() above)
 
 
 @pytest.fixture(scope="module")
@@ -345,7 +300,7 @@ def finished(reference, tmp_path_factory):
     def get(script, threads="1"):
         if (script, threads) not in runs:
             run_dir = tmp_path_factory.mktemp(script.removesuffix(".py"))
-            result = run(run_dir, *RECIPES[script], script=script, env=THREADS[threads])
+            result = run(run_dir, script=script, env=THREADS[threads])
             assert result.returncode == 0, result.stderr[-3000:]
             runs[script, threads] = run_dir
         return runs[script, threads]
@@ -378,16 +333,110 @@ def one_line(result):
     return lines[0]
 
 
+def injected(tool: str, where: str, script: str, run_dir) -> list[str]:
+    """``tests/<tool> <where> <script>`` with :func:`command`'s overrides (a kill or a stop it makes itself)."""
+    return [sys.executable, str(ROOT / "tests" / tool), where, script, *command(run_dir, script=script)[2:]]  # the overrides, from experiment=tiny on
+
+
 @pytest.mark.e2e
-@pytest.mark.parametrize("script", list(RECIPES))
+@pytest.mark.parametrize("threads", list(THREADS))
+@pytest.mark.parametrize("script", SCRIPTS)
+def test_every_recipe_killed_after_its_first_checkpoint_then_rerun_gives_the_same_records(finished, tmp_path, script, threads):
+    """SIGKILL as soon as the recipe's first checkpoint is written (mid-phase where it checkpoints
+    mid-phase, else at an iteration's end), then the same command: the uninterrupted run's records,
+    under either thread count of the process."""
+    env = THREADS[threads]
+    killed = subprocess.run(injected("inject_kill.py", "first_checkpoint", script, tmp_path), cwd=ROOT, capture_output=True, text=True, timeout=900, env=env)
+    assert killed.returncode == -signal.SIGKILL, killed.stderr[-3000:]
+    reference = finished(script, threads)
+    assert len(checkpoints(tmp_path)) == 1 and len(rows_without_wall_time(tmp_path)) < len(rows_without_wall_time(reference))  # killed mid-run
+    result = run(tmp_path, script=script, env=env)
+    assert result.returncode == 0, result.stderr[-3000:]
+    assert rows_without_wall_time(tmp_path) == rows_without_wall_time(reference)
+    assert summary_without_wall_time(tmp_path) == summary_without_wall_time(reference)
+    record = (tmp_path / script.replace(".py", ".log")).read_text()  # the run's record: both pieces, in order
+    assert record.count("] started: ") == 1 and record.count("] resumed at iteration ") == 1 and "] finished: " in record
+    assert record.index("] started: ") < record.index("] resumed at iteration ") < record.index("] finished: ")
+
+
+@pytest.mark.e2e
+@pytest.mark.parametrize("script", SCRIPTS)
+def test_every_recipe_stopped_by_sigterm_at_its_first_stop_point_resumes_to_the_same_records(finished, tmp_path, script):
+    """SIGTERM (a scheduler's stop) as the recipe reaches its first stop point (a TD3 batch, a
+    generation, an iteration's end): it stops there in one line with the command that resumes it,
+    and that command ends as the uninterrupted run."""
+    stopped = subprocess.run(injected("inject_stop.py", "stop_point@1", script, tmp_path), cwd=ROOT, capture_output=True, text=True, timeout=900, env=ENV)
+    assert stopped.returncode == 128 + signal.SIGTERM, stopped.stderr[-3000:]
+    line = stop_line(stopped.stderr, "SIGTERM")
+    assert f"hydra.run.dir={tmp_path}" in line and "Traceback" not in stopped.stderr, line
+    reference = finished(script)
+    assert len(rows_without_wall_time(tmp_path)) < len(rows_without_wall_time(reference))
+    result = run(tmp_path, script=script)
+    assert result.returncode == 0, result.stderr[-3000:]
+    assert rows_without_wall_time(tmp_path) == rows_without_wall_time(reference)
+    assert summary_without_wall_time(tmp_path) == summary_without_wall_time(reference)
+
+
+def _bad_inputs(script: str) -> list[tuple[str, str]]:
+    """``(override, field)``: a wrong type and a value outside its check, for a key of the
+    recipe's own sections (of every run's keys, for a recipe without sections of its own)."""
+    from torchrl_esrl.run.config import schema_fields
+    from torchrl_esrl.run.schema import RunConfig
+
+    keys = own_keys(script) or [(key, item) for key, item, _ in schema_fields(RunConfig)]
+    key, item = next((key, item) for key, item in keys if item.metadata.get("check", {}).get("kind") == "number")
+    return [(f"{key}=abc", key), (f"{key}={outside(item.metadata['check'])}", key)]
+
+
+@pytest.mark.e2e
+@pytest.mark.parametrize("script, override, field", [(script, *bad) for script in SCRIPTS for bad in _bad_inputs(script)])
+def test_every_recipe_refuses_bad_input_in_one_line_before_any_work(tmp_path, script, override, field):
+    result = run(tmp_path / "run", override, script=script)
+    line = one_line(result)
+    assert result.returncode == 2 and line.startswith("config error: ") and field in line, line
+    assert not (tmp_path / "run").exists()  # refused before the run directory is made
+
+
+@pytest.mark.e2e
+@pytest.mark.parametrize("script", SCRIPTS)
 def test_rerunning_a_finished_run_says_so_and_changes_nothing(finished, script):
     run_dir = finished(script)
     before = tree(run_dir)
-    result = run(run_dir, *RECIPES[script], script=script)
+    result = run(run_dir, script=script)
     assert result.returncode == 0, result.stderr[-3000:]
     lines = result.stdout.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("finished:") and str(run_dir / "summary.json") in lines[0], result.stdout
     assert tree(run_dir) == before  # Hydra's .hydra/ and log included: the check runs before Hydra writes
+
+
+def as_saved_before_sections_were_a_recipes_own(checkpoint: Path) -> None:
+    """Rewrite a checkpoint's config as the code before recipes owned their sections saved it: every
+    run's config held every section, ``cem: null`` where the recipe had no CEM (its digests made again,
+    as that code wrote them)."""
+    from torchrl_esrl.run.checkpoint import DIGEST_FILE, DIGESTS, metadata_digest
+
+    manifest_path = checkpoint / "manifest.json"
+    manifest = json.loads(manifest_path.read_text())
+    manifest["metadata"]["config"].setdefault("cem", None)
+    manifest_path.write_text(json.dumps(manifest))
+    digests_path = checkpoint / manifest["components"][DIGESTS]["path"] / DIGEST_FILE
+    digests = json.loads(digests_path.read_text())
+    digests["metadata"] = metadata_digest(manifest["metadata"])
+    digests_path.write_text(json.dumps(digests))
+
+
+@pytest.mark.e2e
+def test_a_run_checkpointed_when_every_config_held_every_section_resumes(reference, tmp_path):
+    """A run whose checkpoint holds a section its recipe does not have (``cem: null``, as every
+    ES-TD3Buffers run saved it when every recipe's config held every section) resumes with the same
+    command and ends as it would have."""
+    run_dir = killed_after_its_last_checkpoint(reference, tmp_path / "run")
+    newest = run_dir / "checkpoints" / checkpoints(run_dir)[-1]
+    as_saved_before_sections_were_a_recipes_own(newest)
+    assert json.loads((newest / "manifest.json").read_text())["metadata"]["config"]["cem"] is None
+    result = run(run_dir)
+    assert result.returncode == 0 and "cannot be read" not in result.stderr, result.stderr[-3000:]
+    assert summary_without_wall_time(run_dir) == summary_without_wall_time(reference)
 
 
 @pytest.mark.e2e
@@ -401,19 +450,40 @@ def test_cem_rl_with_routed_buffers_fills_good_bad_and_noisy_and_learns_at_the_r
     assert last["td3_updates"] > 0 and last["best_return"] >= last["threshold"]
 
 
-EVALUATES_A_POPULATION = {"es_td3.py", "es.py", "cem_rl.py", "cem_rl_buffers.py"}
-TRAINS_TD3 = {"es_td3.py", "td3.py", "cem_rl.py", "cem_rl_buffers.py"}
+@pytest.mark.e2e
+def test_the_cem_alone_plays_the_generations_cem_rl_plays_without_rl(finished, tmp_path):
+    """recipes/cem.py is CEM-RL's sepCEM without gradient steps: CEM-RL with ``cem.rl_fraction=0``
+    and the same population evaluates the same means, plays the same members and ends the same."""
+    cem = finished("cem.py")
+    population = next(o for o in tiny_overrides("cem.py") if o.startswith("cem.population_size="))
+    result = run(tmp_path, "cem.rl_fraction=0", population, script="cem_rl.py")
+    assert result.returncode == 0, result.stderr[-3000:]
+    alone, without_rl = read_metrics(cem / "metrics.csv"), read_metrics(tmp_path / "metrics.csv")
+    assert len(alone) == len(without_rl) == 2 and not any(row["td3_updates"] for row in without_rl)
+    for a, b in zip(alone, without_rl):
+        assert (a["es_frames"], a["td3_frames"]) == (b["td3_frames"], 0)  # the same frames, counted as ES frames: no TD3 here
+        for column in ("eval_return", "generations", "cem_mean_std", "population_mean_return", "population_max_return"):
+            assert a[column] == b[column], column
+    assert json.loads((cem / "summary.json").read_text())["final_return"] == json.loads((tmp_path / "summary.json").read_text())["final_return"]
 
 
 @pytest.mark.e2e
-@pytest.mark.parametrize("script", list(RECIPES))
+@pytest.mark.parametrize("script", SCRIPTS)
 def test_the_summary_names_what_computes_every_component_whatever_the_recipe_calls_it(finished, script):
     """The pieces and threads of ``summary.json`` come from the components a recipe builds, found by
-    type: CEM-RL's population collector is reported as the ES-TD3 collector is."""
-    summary = json.loads((finished(script) / "summary.json").read_text())
+    type: a recipe that evaluates a population (its holdings hold one) is reported as ES-TD3's ES
+    collector is, whatever it calls it; one that trains TD3 (it logs TD3 updates) as TD3 is."""
+    from torchrl_esrl.envs import env_sizes
+
+    run_dir = finished(script)
+    summary = json.loads((run_dir / "summary.json").read_text())
+    cfg = compose_tiny(recipe_of(script).config_name, *tiny_overrides(script))
+    held = {holding.part for holding in recipe_of(script).holdings(cfg, env_sizes(cfg.env.id, cfg.env.max_episode_steps))}
+    evaluates_a_population, trains_td3 = "population" in held, "td3_updates" in read_metrics(run_dir / "metrics.csv")[0]
     pieces, threads = set(summary["pieces"]), set(summary["threads"])
-    assert ({"es_forward", "es_physics"} <= pieces and "es" in threads) == (script in EVALUATES_A_POPULATION), summary
-    assert ({"td3_loss", "soft_update", "adam"} <= pieces and "td3" in threads) == (script in TRAINS_TD3), summary
+    assert ({"es_forward", "es_physics"} <= pieces and "es" in threads) == evaluates_a_population, summary
+    assert ({"td3_loss", "soft_update", "adam"} <= pieces and "td3" in threads) == trains_td3, summary
+    assert ({"buffer_writes", "buffer_reads"} <= pieces) == ("buffers" in held), summary
 
 
 @pytest.mark.e2e
@@ -429,18 +499,18 @@ def test_fresh_run_goes_next_to_the_finished_one(reference, tmp_path):
     assert summary_without_wall_time(tmp_path / "run-2") == summary_without_wall_time(reference)
 
 
-KILLS = [("es_td3.py", "final_evaluation"), ("es_td3.py", "summary_write"), ("td3.py", "summary_write"), ("es.py", "final_evaluation"), ("cem_rl.py", "summary_write"), ("cem_rl_buffers.py", "summary_write")]
+# Every recipe killed halfway through writing its summary; the kill in the final evaluation is the lifecycle's, on ES-TD3Buffers.
+KILLS = [*((script, "summary_write") for script in SCRIPTS), ("es_td3.py", "final_evaluation")]
 
 
 @pytest.mark.e2e
 @pytest.mark.parametrize("script, where", KILLS)
 def test_killed_in_the_final_stage_then_rerun_ends_as_an_uninterrupted_run(finished, tmp_path, script, where):
-    injected = [sys.executable, str(ROOT / "tests" / "inject_kill.py"), where, script, TINY, *RESUME, *RECIPES[script], f"hydra.run.dir={tmp_path}"]
-    killed = subprocess.run(injected, cwd=ROOT, capture_output=True, text=True, timeout=900, env=ENV)
+    killed = subprocess.run(injected("inject_kill.py", where, script, tmp_path), cwd=ROOT, capture_output=True, text=True, timeout=900, env=ENV)
     assert killed.returncode == -signal.SIGKILL, killed.stderr[-3000:]
     assert not (tmp_path / "summary.json").exists()
     assert (tmp_path / "summary.json.tmp").exists() == (where == "summary_write")  # half written, never in place
-    result = run(tmp_path, *RECIPES[script], script=script)
+    result = run(tmp_path, script=script)
     assert result.returncode == 0, result.stderr[-3000:]
     reference = finished(script)
     assert rows_without_wall_time(tmp_path) == rows_without_wall_time(reference)
@@ -456,8 +526,7 @@ def test_a_final_stage_that_fails_costs_the_figure_or_ends_in_one_line_and_the_s
     """A figure that raises costs that figure and one warning line, never the summary; a summary
     that cannot be written ends the run in one line, and a rerun goes straight to the final stage
     (no iteration again) and ends as the uninterrupted run did."""
-    injected = [sys.executable, str(ROOT / "tests" / "inject_fail.py"), where, script, TINY, *RESUME, *RECIPES[script], f"hydra.run.dir={tmp_path}"]
-    failed = subprocess.run(injected, cwd=ROOT, capture_output=True, text=True, timeout=900, env=ENV)
+    failed = subprocess.run(injected("inject_fail.py", where, script, tmp_path), cwd=ROOT, capture_output=True, text=True, timeout=900, env=ENV)
     line = one_line(failed)
     if where == "figure":
         assert failed.returncode == 0 and line.startswith("warning: learning_curve.png was not drawn (KeyError: 'es_eval_return')"), line
@@ -465,7 +534,7 @@ def test_a_final_stage_that_fails_costs_the_figure_or_ends_in_one_line_and_the_s
     else:
         assert failed.returncode == 2 and line.startswith(f"disk error: No space left on device writing {tmp_path / 'summary.json'}"), line
         assert not (tmp_path / "summary.json").exists()
-        result = run(tmp_path, *RECIPES[script], script=script)
+        result = run(tmp_path, script=script)
         assert result.returncode == 0, result.stderr[-3000:]
         record = (tmp_path / script.replace(".py", ".log")).read_text()
         resumed = record[record.index("] resumed at iteration 3 from "):]
@@ -505,8 +574,7 @@ STOPS = [("cem_rl.py", 400, "member 2/2"), ("cem_rl_buffers.py", 130, "member 1/
 @pytest.mark.parametrize("script, step, member", STOPS)
 def test_cem_rl_stopped_in_its_gradient_steps_checkpoints_there_and_resumes_to_the_same_records(finished, tmp_path, script, step, member, threads):
     env = THREADS[threads]
-    injected = [sys.executable, str(ROOT / "tests" / "inject_stop.py"), str(step), script, TINY, *RESUME, *RECIPES[script], f"hydra.run.dir={tmp_path}"]
-    stopped = subprocess.run(injected, cwd=ROOT, capture_output=True, text=True, timeout=900, env=env)
+    stopped = subprocess.run(injected("inject_stop.py", f"gradient_step@{step}", script, tmp_path), cwd=ROOT, capture_output=True, text=True, timeout=900, env=env)
     assert stopped.returncode == 128 + signal.SIGTERM, stopped.stderr[-3000:]
     line = stop_line(stopped.stderr, "SIGTERM")
     assert f", generation under way, {step} gradient steps taken (in CEM-RL's gradient steps, {member})" in line, line
@@ -515,14 +583,14 @@ def test_cem_rl_stopped_in_its_gradient_steps_checkpoints_there_and_resumes_to_t
     from torchrl_esrl.envs import env_sizes
     from torchrl_esrl.run.capacity import estimate
 
-    cfg = compose_tiny(CONFIGS[script], *RECIPES[script])
+    cfg = compose_tiny(recipe_of(script).config_name, *tiny_overrides(script))
     disk = int(subprocess.run(["du", "-s", "--block-size=1", str(tmp_path / "checkpoints" / written)], capture_output=True, text=True, check=True).stdout.split()[0])
     assert disk <= estimate(load_recipe(script).holdings(cfg, env_sizes(cfg.env.id, cfg.env.max_episode_steps))).checkpoint  # its population included
     saved = json.loads(next((tmp_path / "checkpoints" / written).glob("components/*-threads/state.json")).read_text())
     saved = {key["value"]: value["value"] for key, value in saved["items"]}  # TorchRL's encoding of {"torch": count}
     if threads == "1":  # the run's count between phases, not the gradient steps' (the job's cores)
         assert saved == {"torch": 1}, saved
-    result = run(tmp_path, *RECIPES[script], script=script, env=env)
+    result = run(tmp_path, script=script, env=env)
     assert result.returncode == 0, result.stderr[-3000:]
     reference = finished(script, threads)
     assert rows_without_wall_time(tmp_path) == rows_without_wall_time(reference)
@@ -687,18 +755,17 @@ def test_memory_and_disk_checks_name_what_is_needed_what_is_there_and_the_field(
 
 
 @pytest.mark.e2e
-@pytest.mark.parametrize("script", list(RECIPES))
+@pytest.mark.parametrize("script", SCRIPTS)
 def test_estimate_matches_the_filled_buffers_and_the_written_checkpoint(finished, script):
     from torchrl.checkpoint import Checkpoint, StateDictCheckpointAdapter
 
-    from torchrl_esrl.data.multibuffer import MultiBuffer
+    from torchrl_esrl.data.multibuffer import MultiBuffer, make_multibuffer
     from torchrl_esrl.envs import env_sizes
     from torchrl_esrl.run.capacity import CHECKPOINT_MARGIN, bytes_per_transition, estimate
-    from torchrl_esrl.run.factories import make_multibuffer
     from torchrl_esrl.torchrl_private import tensor_storage_data
 
     run_dir = finished(script)
-    cfg = compose_tiny(CONFIGS[script], *RECIPES[script])
+    cfg = compose_tiny(recipe_of(script).config_name, *tiny_overrides(script))
     sizes = env_sizes(cfg.env.id, cfg.env.max_episode_steps)
     holdings = load_recipe(script).holdings(cfg, sizes)
     needed = estimate(holdings)
@@ -707,7 +774,7 @@ def test_estimate_matches_the_filled_buffers_and_the_written_checkpoint(finished
     per_buffer = int(cfg.buffer.capacity) * bytes_per_transition(sizes.observation_dim, sizes.action_dim)
     unallocated = needed.memory.get("buffers", 0) // per_buffer  # the buffers the recipe builds
     if unallocated:  # the buffers as the run left them, loaded into real ones
-        buffer = make_multibuffer(cfg) if script == "es_td3.py" else MultiBuffer(ratio=(0, 0, 1), capacity=cfg.buffer.capacity, batch_size=cfg.buffer.batch_size, min_size=cfg.buffer.min_size)
+        buffer = make_multibuffer(cfg)  # its ratio and readiness as saved
         Checkpoint(buffer=buffer).register_adapter(MultiBuffer, StateDictCheckpointAdapter()).load(newest, components=["buffer"])
         storages = [data for data in (tensor_storage_data(b.storage) for b in buffer.buffers.values()) if data is not None]
         assert storages  # at least one buffer written

@@ -1,8 +1,10 @@
 """experiment=miniature and experiment=quarter: the paper's schedule (the schema's defaults, experiment=paper)
-scaled by one factor, checked by composing both with Hydra for every recipe and task of the sets."""
+scaled by one factor, checked by composing both with Hydra for every recipe (tests/conftest.py's
+``RECIPES``) and task of the sets."""
 from pathlib import Path
 
 import pytest
+from conftest import RECIPES, own_keys, recipe_of
 from hydra import compose, initialize_config_dir
 
 from torchrl_esrl.run.config import validate_config
@@ -22,9 +24,10 @@ SCALED = {"miniature": (0.04, 2), "quarter": (0.25, 13)}
 
 
 @pytest.mark.parametrize("env", ["halfcheetah", "walker2d", "swimmer", "ant"])
-@pytest.mark.parametrize("config", ["config", "td3", "es"])
+@pytest.mark.parametrize("script", sorted(RECIPES))
 @pytest.mark.parametrize("preset", sorted(SCALED))
-def test_scaled_presets_scale_the_paper_by_one_factor(preset, config, env):
+def test_scaled_presets_scale_the_paper_by_one_factor(preset, script, env):
+    config = recipe_of(script).config_name
     paper, mini = composed(config, "paper", env), composed(config, preset, env)
     share, generations = SCALED[preset]
     m, paper_m = mini.td3.frames_per_iteration, paper.td3.frames_per_iteration
@@ -36,10 +39,10 @@ def test_scaled_presets_scale_the_paper_by_one_factor(preset, config, env):
     assert mini.es.generations_per_iteration / paper.es.generations_per_iteration == pytest.approx(factor, rel=0.05)  # 13 for 12.5: +4%
     assert mini.buffer.min_size == m // 4  # K = M/4
     assert mini.buffer.min_size / paper.buffer.min_size == pytest.approx(factor)
-    assert mini.td3.random_frames == (mini.buffer.min_size if config == "td3" else 0)  # Fujimoto's warm-up is K frames
+    assert mini.td3.random_frames * paper_m == paper.td3.random_frames * m  # TD3 alone's warm-up is K frames, so it scales; 0 elsewhere
     for key in ("es.population_size", "es.antithetic", "es.sigma", "es.lr", "buffer.capacity", "buffer.renormalize", "buffer.ratio",
                 "td3.frames_per_batch", "td3.lr", "td3.updates_per_frame", "overwrite.window", "threshold.fraction", "env.max_episode_steps",
-                "eval.episodes", "eval.final_episodes"):
+                "eval.episodes", "eval.final_episodes", *(key for key, _ in own_keys(script))):
         first, second = (cfg for cfg in (paper, mini))
         for part in key.split("."):
             first, second = first[part], second[part]

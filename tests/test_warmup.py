@@ -10,7 +10,7 @@ from torchrl_esrl.envs import make_env
 from torchrl_esrl.modules.networks import make_actor, make_critic
 from torchrl_esrl.modules.warmup import RandomWarmup
 from torchrl_esrl.objectives.td3 import TD3
-from torchrl_esrl.run.factories import make_frame_batches
+from torchrl_esrl.collectors.td3_collector import make_frame_batches
 
 
 def make_td3_with_warmup(frames: int, seed: int = 7):

@@ -142,7 +142,7 @@ class EnvSpec:
     return is the sum of the rewards TD3 learns from, in TD3's env as in every ES episode.
 
     It is the description each fast piece reads to decide whether it computes exactly what its
-    reference would (:mod:`torchrl_esrl.run.factories`)."""
+    reference would (:mod:`torchrl_esrl.run.implementation`)."""
 
     id: str
     kwargs: Mapping[str, Any] = field(default_factory=dict)
@@ -619,3 +619,8 @@ def make_gym_env(env: "str | EnvSpec", max_episode_steps: int | None = None) -> 
 def make_env(env: "str | EnvSpec", seed: int = 0, max_episode_steps: int | None = None) -> TransformedEnv:
     """The TorchRL env TD3 interacts with (:meth:`EnvSpec.make_torchrl`), seeded."""
     return as_env_spec(env, max_episode_steps).make_torchrl(seed)
+
+
+def make_train_env(cfg) -> TransformedEnv:
+    """TD3's TorchRL env of a config's ``env`` section (:meth:`EnvSpec.make_torchrl`), seeded with the run's seed."""
+    return EnvSpec.from_config(cfg.env).make_torchrl(seed=cfg.seed)

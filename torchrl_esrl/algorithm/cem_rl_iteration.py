@@ -9,6 +9,8 @@ from dataclasses import dataclass, field
 import torch
 
 from torchrl_esrl.es.cem import GradientStepsPosition, cem_rl_gradient_steps
+from torchrl_esrl.modules.networks import actor_parameters
+from torchrl_esrl.run.capacity import FLOAT, Holding
 
 # What a CEM-RL run's ``td3_frames`` count (its recipes' ``AlgorithmInfo.td3_frames``): it has no TD3 phase.
 POPULATION_FRAMES = "TD3 frames are every population member's episode, the CEM's fitness evaluations and the critic's data alike (no ES frames)"
@@ -40,10 +42,11 @@ def routed_by_return(threshold, rl_members: int) -> Callable:
 
 @dataclass
 class GenerationsProgress:
-    """How far one CEM-RL iteration (generations until M new frames) has got; :func:`cem_rl_iteration`
-    resumes it. A recipe hands it to the run as ``run.progress.phase``, so that it is checkpointed
-    with the run at every stop point: the iteration's frames, member returns and critic losses so
-    far, and the generation under way (its population, its gradient steps' position)."""
+    """How far one iteration of generations until M new frames (CEM-RL's, the CEM's) has got;
+    :func:`cem_rl_iteration` resumes it. A recipe hands it to the run as ``run.progress.phase``, so
+    that it is checkpointed with the run at every stop point: the iteration's frames, member
+    returns and critic losses so far, and the generation under way (its population, its gradient
+    steps' position; CEM-RL's only)."""
 
     frames: int = 0
     returns: list[torch.Tensor] = field(default_factory=list)
@@ -69,8 +72,9 @@ class GenerationsProgress:
         self.population, self.steps = None, GradientStepsPosition()
 
     def finish_iteration(self) -> dict:
-        """The iteration's member returns and critic losses; the next iteration starts from here."""
-        stats = {"returns": torch.cat(self.returns), "critic_losses": self.critic_losses}
+        """The iteration's member returns (empty if it played no generation) and critic losses; the
+        next iteration starts from here."""
+        stats = {"returns": torch.cat(self.returns) if self.returns else torch.empty(0), "critic_losses": self.critic_losses}
         self.frames, self.returns, self.critic_losses = 0, [], []
         return stats
 
@@ -143,3 +147,9 @@ def cem_rl_metrics(cem, td3, counters: dict, stats: dict) -> dict:
         "critic_loss": sum(critic_losses) / len(critic_losses) if critic_losses else "",
         "cem_mean_std": cem.var.sqrt().mean().item(),
     }
+
+
+def population_under_way_holdings(cfg, sizes) -> list[Holding]:
+    """What a stop within a CEM-RL generation's gradient steps adds to the checkpoint: its
+    population (:attr:`GenerationsProgress.population`), a copy of what memory already holds."""
+    return [Holding("population", FLOAT * actor_parameters(cfg, sizes) * int(cfg.cem.population_size), "cem.population_size", in_memory=False)]

@@ -111,3 +111,10 @@ class ESPhase:
     def close(self) -> None:
         if self.background is not None:
             self.background.close()
+
+
+def make_es_phase(cfg, es, es_collector, buffer, threshold, on_generation: Callable[[int], None] | None = None) -> ESPhase:
+    """Algorithm 1's ES step of a config: ``es.generations_per_iteration`` generations, routed to
+    one buffer with ``buffer.mode=shared``; ``es.schedule=async`` runs it in a thread alongside
+    the TD3 phase."""
+    return ESPhase(es, es_collector, buffer, threshold, cfg.es.generations_per_iteration, shared_buffer=cfg.buffer.mode == "shared", background=cfg.es.schedule == "async", on_generation=on_generation)

@@ -77,3 +77,8 @@ class OverwriteRule:
         self.td3_returns = deque(state["td3_returns"], maxlen=self.window)
         self.es_returns = deque(state["es_returns"], maxlen=self.window)
         self.decisions = [OverwriteDecision(**d) for d in state["decisions"]]
+
+
+def make_overwrite_rule(cfg) -> OverwriteRule:
+    """The overwrite rule of the ``overwrite`` section."""
+    return OverwriteRule(window=cfg.overwrite.window, mode=cfg.overwrite.mode, mix=cfg.overwrite.mix)

@@ -50,7 +50,7 @@ def td3_phase(
 ) -> dict[str, float]:
     """Act for ``frames`` frames, writing to ``buffer``'s noisy part and learning once it is ready.
 
-    ``frame_batches`` iterates over a TD3 collector's batches of frames (:func:`~torchrl_esrl.run.factories.make_frame_batches`,
+    ``frame_batches`` iterates over a TD3 collector's batches of frames (:func:`~torchrl_esrl.collectors.td3_collector.make_frame_batches`,
     kept alive across phases so episodes continue where they stopped). The phase runs on
     ``td3.num_threads`` torch threads. ``buffer`` is a :class:`~torchrl_esrl.data.multibuffer.MultiBuffer`
     (written under ``"noisy"``) or any TorchRL replay buffer. ``on_episode`` sees each finished

@@ -6,9 +6,14 @@ Each entry names where its class lives; it is imported on first use, so optional
 from __future__ import annotations
 
 import importlib
-from collections.abc import Callable
+from collections.abc import Callable, Collection
 
+from omegaconf import OmegaConf
+
+from torchrl_esrl.envs import EnvSpec
 from torchrl_esrl.errors import ConfigError
+from torchrl_esrl.run.implementation import chosen_pieces
+from torchrl_esrl.threads import job_cores
 
 BACKENDS: dict[str, str] = {
     "gym": "torchrl_esrl.collectors.gym_backend:GymBackend",  # the reference, any gymnasium id
@@ -77,3 +82,18 @@ def default_backend(env, population_actor=None) -> str:
         if refusal is None:
             return name
     return "gym"
+
+
+def es_backend(cfg, pieces: Collection[str] | None = None, population_actor=None) -> tuple[str, dict]:
+    """The ES collector's backend of a config and its keyword arguments: ``es.backend`` (and, for
+    ``ray``, ``ray.worker_backend``) resolved once (:func:`resolve_backend`: ``auto`` is the fastest
+    local backend for the env and the members' forward ``population_actor``, or the ``gym``
+    reference without the ``es_physics`` piece, which also refuses an explicit ``mujoco_batch``);
+    ``mujoco_batch`` steps on this job's share of the cores (:func:`~torchrl_esrl.threads.job_cores`)."""
+    spec, fast_physics = EnvSpec.from_config(cfg.env), "es_physics" in chosen_pieces(cfg, pieces)
+    backend = resolve_backend(cfg.es.backend, spec, fast_physics, population_actor=population_actor)
+    if backend == "ray":  # offspring evaluated on a Ray cluster, see the `ray` config section
+        kwargs = OmegaConf.to_container(cfg.ray, resolve=True)  # its keys are RayBackend's arguments
+        kwargs["worker_backend"] = resolve_backend(kwargs["worker_backend"], spec, fast_physics, "ray.worker_backend", LOCAL_BACKENDS, population_actor)
+        return backend, kwargs
+    return backend, {"nthread": job_cores()} if backend == "mujoco_batch" else {}

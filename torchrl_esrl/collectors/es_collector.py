@@ -7,15 +7,16 @@ named in :mod:`torchrl_esrl.collectors.backends`.
 """
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Collection, Sequence
 
 import numpy as np
 import torch
 
-from torchrl_esrl.collectors.backends import backend_class, refusals, resolve_backend
+from torchrl_esrl.collectors.backends import backend_class, es_backend, refusals, resolve_backend
 from torchrl_esrl.collectors.generation import Generation
 from torchrl_esrl.envs import EnvSpec, as_env_spec
-from torchrl_esrl.modules.networks import Mirrored, ModulePopulation
+from torchrl_esrl.modules.networks import Mirrored, ModulePopulation, cpu_actor, es_population
+from torchrl_esrl.run.implementation import chosen_pieces
 
 
 class ESCollector:
@@ -87,3 +88,22 @@ class ESCollector:
     def load_state_dict(self, state: dict) -> None:
         self.seeds.bit_generator.state = state["seeds"]
         self.frames = int(state["frames"])
+
+
+def make_es_collector(cfg, actor, pieces: Collection[str] | None = None) -> ESCollector:
+    """The ES collector of a config: ``actor``'s architecture on the backend of
+    :func:`~torchrl_esrl.collectors.backends.es_backend`, with the fast pieces chosen
+    (:mod:`torchrl_esrl.run.implementation`), on the population's seed stream (``seed + 2``)."""
+    fast = chosen_pieces(cfg, pieces)
+    actor = cpu_actor(actor)
+    population = es_population(actor, fast)
+    backend, backend_kwargs = es_backend(cfg, fast, population(actor))  # the backend plays what the members' forward computes
+    return ESCollector(EnvSpec.from_config(cfg.env), actor, backend=backend, seed=int(cfg.seed) + 2, population=population, **backend_kwargs)
+
+
+def make_evaluator(cfg, actor, pieces: Collection[str] | None = None) -> ESCollector:
+    """The deterministic evaluation of a recipe's policies: ``actor``'s architecture played in
+    gymnasium (the ``gym`` backend), on the evaluation seed stream (``seed + 1000``)."""
+    actor = cpu_actor(actor)
+    population = es_population(actor, chosen_pieces(cfg, pieces))
+    return ESCollector(EnvSpec.from_config(cfg.env), actor, backend="gym", seed=int(cfg.seed) + 1000, population=population)

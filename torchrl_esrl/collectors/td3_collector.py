@@ -4,9 +4,11 @@ Two equal paths over the training env of :func:`torchrl_esrl.envs.make_env`, act
 exploration policy: TorchRL's ``Collector`` (the reference, :func:`make_td3_collector`) and
 :class:`GymTD3Collector`, which steps the same gymnasium env directly. Both yield TensorDicts with
 the replay buffer's transition keys and ``("next", "episode_reward")``;
-:func:`torchrl_esrl.run.factories.make_frame_batches` picks one.
+:func:`make_frame_batches` picks one.
 """
 from __future__ import annotations
+
+from collections.abc import Collection
 
 import numpy as np
 import torch
@@ -19,6 +21,7 @@ from torchrl.modules import AdditiveGaussianModule
 from torchrl_esrl.envs import describe_transform, project_transforms
 from torchrl_esrl.modules.networks import describe_actor, forward_difference, probe_observations, squash
 from torchrl_esrl.modules.warmup import RandomWarmup
+from torchrl_esrl.run.implementation import chosen_pieces
 from torchrl_esrl.torchrl_private import collector_carrier, gym_env_of, gym_env_state, load_gym_env_state, restore_collector, unchecked_tensordict
 
 _ACTIVATION_FUNCTIONS = {"tanh": torch.tanh, "relu": torch.relu, None: None}  # what each FAST_ACTIVATIONS module's forward computes
@@ -283,3 +286,19 @@ class TD3EnvState:
         carrier = TensorDict(state["carrier"], batch_size=collector_carrier(collector).batch_size)
         restore_collector(collector, collector_state["frames"], collector_state["iter"], carrier, collector_state.get("traj_pool"))  # absent: no pool saved
         load_gym_env_state(self._gym_env(), state["gym"])
+
+
+def make_frame_batches(cfg, env, td3, pieces: Collection[str] | None = None):
+    """The TD3 collector of a config and an iterator over it that lives across iterations:
+    :class:`GymTD3Collector` where the ``td3_collector`` piece is chosen
+    (:mod:`torchrl_esrl.run.implementation`) and it steps exactly what TorchRL's ``Collector``
+    would (make_env's env, make_actor's actor), else the ``Collector``, ``td3.frames_per_batch``
+    frames a batch."""
+    if "td3_collector" in chosen_pieces(cfg, pieces) and GymTD3Collector.supports(env, td3, cfg.device):
+        collector = GymTD3Collector(env, td3, cfg.td3.frames_per_batch)
+    else:
+        with torch.random.fork_rng():  # the Collector probes the policy once: its noise draw stays off the run's stream
+            collector = make_td3_collector(env, td3, cfg.td3.frames_per_batch, device=cfg.device)
+    if isinstance(td3.exploration_policy, RandomWarmup):
+        td3.exploration_policy.reset()  # undo the Collector's probing call: the warm-up starts at frame 0
+    return collector, iter(collector)

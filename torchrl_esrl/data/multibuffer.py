@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import json
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Collection, Mapping, Sequence
 from pathlib import Path
 
 import torch
@@ -22,6 +22,8 @@ from torchrl.data import LazyTensorStorage, ReplayBufferEnsemble, TensorDictRepl
 
 from torchrl_esrl.data.exact_ratio import ExactRatioSampler, ExactRatioStorage, ratio_counts
 from torchrl_esrl.errors import ConfigError
+from torchrl_esrl.run.capacity import Holding, bytes_per_transition
+from torchrl_esrl.run.implementation import chosen_pieces
 from torchrl_esrl.torchrl_private import append_rows
 
 __all__ = ["BUFFER_NAMES", "TRANSITION_KEYS", "ExactRatioSampler", "ExactRatioStorage", "MultiBuffer", "make_buffer", "ratio_counts", "validate_ratio"]
@@ -259,3 +261,30 @@ class MultiBuffer(ReplayBufferEnsemble):
             else:
                 buffer.loads(path / name)
         return self
+
+
+def make_multibuffer(cfg, pieces: Collection[str] | None = None, one_buffer: bool = False) -> MultiBuffer:
+    """The good/bad/noisy MultiBuffer of the ``buffer`` section, with the fast pieces chosen
+    (:mod:`torchrl_esrl.run.implementation`); ``buffer.mode=shared`` gives one buffer for
+    everything (ERL-style ablation: ``ratio=(0, 0, 1)``, ES transitions are written to it too), as
+    does ``one_buffer`` (the TD3 and CEM-RL baselines' replay buffer)."""
+    c, fast = cfg.buffer, chosen_pieces(cfg, pieces)
+    shared = one_buffer or c.mode == "shared"
+    return MultiBuffer(
+        ratio=[0.0, 0.0, 1.0] if shared else list(c.ratio),
+        capacity=c.capacity,
+        batch_size=c.batch_size,
+        min_size=c.min_size,
+        renormalize=c.renormalize and not one_buffer,
+        device=cfg.device,
+        direct_writes="buffer_writes" in fast,
+        direct_reads="buffer_reads" in fast,
+    )
+
+
+def buffer_holdings(cfg, sizes, buffers: int) -> list[Holding]:
+    """``buffers`` replay buffers of ``buffer.capacity`` transitions each (:func:`make_multibuffer`
+    with its three buffers, or ``buffers=1`` with one), on ``device``, for the run's memory
+    estimate (:mod:`torchrl_esrl.run.capacity`)."""
+    size = buffers * int(cfg.buffer.capacity) * bytes_per_transition(sizes.observation_dim, sizes.action_dim)
+    return [Holding("buffers", size, "buffer.capacity", on_device=True)]

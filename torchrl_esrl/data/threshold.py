@@ -67,3 +67,8 @@ class Threshold:
 
     def __repr__(self) -> str:
         return f"Threshold(fraction={self.fraction}, best={self.best:.3f}, value={self.value:.3f})"
+
+
+def make_threshold(cfg) -> Threshold:
+    """The threshold of the ``threshold`` section."""
+    return Threshold(fraction=cfg.threshold.fraction)

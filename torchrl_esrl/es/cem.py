@@ -17,18 +17,48 @@ diagonal covariance (``sepCEM``): sample ``z_i = mu + sqrt(var) * eps_i`` (antit
 ``F // rl_members`` critic steps, then ``F`` actor steps, F = frames of the previous generation,
 on ``td3.num_threads`` torch threads as TD3's own phase. Where the steps stand is a
 :class:`GradientStepsPosition`: a run stopped between two steps resumes from it.
+
+:class:`CEMConfig` is the ``cem`` config section of the recipes that build a :class:`DiagonalCEM`
+(``recipe_main(..., sections={"cem": CEMConfig})``), :func:`make_cem` builds it from there.
 """
 from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
+from torchrl_esrl.errors import ConfigError
+from torchrl_esrl.run.schema import number, positive
+
 import torch
 
-from torchrl_esrl.es.strategy import checked_returns
+from torchrl_esrl.es.strategy import checked_returns, strategy_holdings
 from torchrl_esrl.modules.networks import Mirrored, flat_parameters, load_flat_parameters
+from torchrl_esrl.run.capacity import Holding
 from torchrl_esrl.threads import torch_threads
 from torchrl_esrl.torchrl_private import foreach_lerp_
+
+
+@dataclass
+class CEMConfig:
+    """The ``cem`` config section: sepCEM's hyper-parameters (the authors' ``ES.py`` and
+    ``es_grad.py`` defaults, where the CEM-RL paper's table is silent; docs/deviations.md, 25) and
+    CEM-RL's gradient-step schedule, which the CEM alone (``recipes/cem.py``) does not read."""
+
+    population_size: int = number(10, low=2, integer=True)  # CEM-RL: 10 actors
+    rl_fraction: float = number(0.5, low=0, high=1)  # CEM-RL's n_grad = 5 of 10: per member F/5 critic steps, then F actor steps
+    elite_fraction: float = number(0.5, low=0, high=1, low_open=True)  # parents = pop/2 update mean and variance
+    sigma_init: float = positive(1.0e-3)  # initial VARIANCE of every coordinate (reference sigma_init)
+    damping_init: float = number(1.0e-3, low=0)
+    damping_end: float = number(1.0e-5, low=0)
+    damping_tau: float = number(0.95, low=0, high=1)
+    antithetic: bool = True  # mirrored pairs +eps, -eps (the reference asserts an even population)
+    start_frames: int = number(10000, low=0, integer=True)  # CEM-RL's start_steps: no gradient steps before this many frames
+
+    @staticmethod
+    def check(cem, key: str) -> None:
+        """The checks across the section's keys (run by :func:`torchrl_esrl.run.config.validate_config`)."""
+        if cem.antithetic and cem.population_size % 2:
+            raise ConfigError(f"{key}.population_size: {cem.population_size} is invalid with {key}.antithetic=true (allowed: an even integer >= 2)")
 
 
 def elite_weights(num_elites: int) -> torch.Tensor:
@@ -225,3 +255,26 @@ def cem_rl_gradient_steps(td3, buffer, population: torch.Tensor, rl_members: int
             at.member, at.member_critic_steps, at.member_actor_steps = member + 1, 0, 0
     td3.updates += at.critic_steps
     return {"critic_steps": at.critic_steps, "actor_steps": at.actor_steps, "critic_losses": at.critic_losses}
+
+
+def make_cem(cfg, actor) -> DiagonalCEM:
+    """The diagonal CEM of the ``cem`` section centred on the actor's parameters, on its own noise
+    stream (``seed + 1``)."""
+    c = cfg.cem
+    return DiagonalCEM(
+        flat_parameters(actor).cpu(),
+        population_size=c.population_size,
+        sigma_init=c.sigma_init,
+        elite_fraction=c.elite_fraction,
+        damping_init=c.damping_init,
+        damping_end=c.damping_end,
+        damping_tau=c.damping_tau,
+        antithetic=c.antithetic,
+        generator=torch.Generator().manual_seed(int(cfg.seed) + 1),
+    )
+
+
+def cem_holdings(cfg, sizes) -> list[Holding]:
+    """:func:`make_cem`'s CEM state and one generation (population, noise, episodes), for the
+    run's memory estimate (:mod:`torchrl_esrl.run.capacity`)."""
+    return strategy_holdings(cfg, sizes, "cem", DiagonalCEM.HELD_COPIES)

@@ -11,8 +11,9 @@ from __future__ import annotations
 
 import torch
 
-from torchrl_esrl.es.strategy import checked_returns
-from torchrl_esrl.modules.networks import Mirrored
+from torchrl_esrl.es.strategy import checked_returns, strategy_holdings
+from torchrl_esrl.modules.networks import Mirrored, flat_parameters
+from torchrl_esrl.run.capacity import Holding
 
 
 def centered_ranks(values: torch.Tensor) -> torch.Tensor:
@@ -152,3 +153,24 @@ class OpenES:
         self.generator.set_state(state["generator"])
         self.generation = int(state["generation"])
         self.sigma = float(state["sigma"])
+
+
+def make_es(cfg, actor) -> OpenES:
+    """OpenAI-ES of the ``es`` section whose mean starts at the (randomly initialised, near 0)
+    actor's parameters, on its own noise stream (``seed + 1``)."""
+    c = cfg.es
+    return OpenES(
+        flat_parameters(actor).cpu(),  # the ES mean lives on CPU, where populations are evaluated
+        population_size=c.population_size,
+        sigma=c.sigma,
+        lr=c.lr,
+        antithetic=c.antithetic,
+        weight_decay=c.weight_decay,
+        fitness_shaping=c.fitness_shaping,
+        generator=torch.Generator().manual_seed(int(cfg.seed) + 1),
+    )
+
+
+def es_holdings(cfg, sizes) -> list[Holding]:
+    """:func:`make_es`'s OpenAI-ES state and one generation (population, noise, episodes)."""
+    return strategy_holdings(cfg, sizes, "es", OpenES.HELD_COPIES)

@@ -19,7 +19,8 @@ from typing import Protocol, runtime_checkable
 
 import torch
 
-from torchrl_esrl.modules.networks import Mirrored
+from torchrl_esrl.modules.networks import NETWORK_FIELD, Mirrored, actor_parameters
+from torchrl_esrl.run.capacity import Holding, bytes_per_transition, network_holding, population_holdings
 
 
 @runtime_checkable
@@ -56,3 +57,13 @@ def checked_returns(returns, population: torch.Tensor, generation: int, dtype: t
     if not torch.isfinite(returns).all():
         raise FloatingPointError(f"non-finite episode return in ES generation {generation}: {returns.tolist()}")
     return returns
+
+
+def strategy_holdings(cfg, sizes, section: str, copies: int) -> list[Holding]:
+    """What the strategy of config section ``section`` (its ``population_size`` and ``antithetic``)
+    holds, for the run's memory estimate (:mod:`torchrl_esrl.run.capacity`): ``copies``
+    parameter-sized vectors of its state, and one generation (population, noise, episodes)."""
+    c, parameters = cfg[section], actor_parameters(cfg, sizes)
+    transition = bytes_per_transition(sizes.observation_dim, sizes.action_dim)
+    field = f"{section}.population_size"
+    return [network_holding(copies, parameters, NETWORK_FIELD), *population_holdings(parameters, int(c.population_size), bool(c.antithetic), sizes.episode_steps, transition, field)]

@@ -30,6 +30,7 @@ from torch.nn.utils import parameters_to_vector, parametrize, vector_to_paramete
 from torchrl.data import TensorSpec
 from torchrl.modules import MLP, TanhModule, ValueOperator
 
+from torchrl_esrl.run.capacity import mlp_parameters
 from torchrl_esrl.threads import torch_threads
 from torchrl_esrl.torchrl_private import FORWARD_HOOK_KINDS, global_module_hooks, module_hook_dicts
 
@@ -564,3 +565,39 @@ def _relu(x: np.ndarray) -> np.ndarray:
 
 
 _NUMPY_ACTIVATIONS = {"tanh": np.tanh, "relu": _relu}  # PopulationActor's kernels of FAST_ACTIVATIONS
+
+
+# ------------------------------------------------------------ built from the config (recipes)
+NETWORK_FIELD = "actor.hidden or td3.critic_hidden"  # what a refusal for the networks' memory names
+
+
+def make_actor_critic(cfg, env):
+    """The paper's actor (2x256 tanh, ``actor``) and the critic template TD3 duplicates into twin
+    critics (``td3.critic_hidden``, ``td3.critic_activation``), on ``cfg.device`` (TD3's side; ES
+    evaluates populations on CPU, see :func:`cpu_actor`)."""
+    observation_dim = env.observation_spec["observation"].shape[-1]
+    action_dim = env.action_spec.shape[-1]
+    actor = make_actor(observation_dim, env.action_spec, tuple(cfg.actor.hidden), cfg.actor.activation)
+    critic = make_critic(observation_dim, action_dim, tuple(cfg.td3.critic_hidden), cfg.td3.critic_activation)
+    return actor.to(cfg.device), critic.to(cfg.device)
+
+
+def cpu_actor(actor):
+    """``actor`` itself on CPU, else a CPU copy: the template of ES populations and evaluations,
+    whose physics (and batched forward) run on CPU whatever device TD3 trains on."""
+    if all(p.device.type == "cpu" for p in actor.parameters()):
+        return actor
+    return copy.deepcopy(actor).to("cpu")
+
+
+def es_population(actor, pieces) -> type:
+    """The class that computes ES members' actions: :class:`PopulationActor` where the ``es_forward``
+    piece is chosen and it computes what ``actor`` does (tanh/ReLU MLPs, nothing run around their
+    modules, the same actions on the probe's observations: :meth:`PopulationActor.refusal`), else the
+    reference :class:`ModulePopulation` (:mod:`torchrl_esrl.run.implementation`)."""
+    return PopulationActor if "es_forward" in pieces and PopulationActor.supports(actor) else ModulePopulation
+
+
+def actor_parameters(cfg, sizes) -> int:
+    """The number of parameters of :func:`make_actor_critic`'s actor for a task of ``sizes`` (:class:`~torchrl_esrl.envs.EnvSizes`)."""
+    return mlp_parameters([sizes.observation_dim, *cfg.actor.hidden, sizes.action_dim])

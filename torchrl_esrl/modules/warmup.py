@@ -40,7 +40,7 @@ class RandomWarmup(TensorDictModuleBase):
     def reset(self) -> None:
         """Start the warm-up over: no frame acted, the generator at its seed. TorchRL's
         ``Collector`` calls its policy once when it is built, to learn the policy's outputs;
-        :func:`~torchrl_esrl.run.factories.make_frame_batches` resets after that call."""
+        :func:`~torchrl_esrl.collectors.td3_collector.make_frame_batches` resets after that call."""
         self.frames_acted = 0
         self.generator.manual_seed(self.seed)
 

@@ -1,4 +1,4 @@
-"""The hand-written TD3 loss of the fast path (``td3_loss`` in :data:`torchrl_esrl.run.factories.FAST_PIECES`).
+"""The hand-written TD3 loss of the fast path (``td3_loss`` in :data:`torchrl_esrl.run.implementation.FAST_PIECES`).
 
 :class:`ManualGradTD3Loss` is TorchRL's :class:`~torchrl.objectives.TD3Loss` (Fujimoto et al.
 2018) whose losses are ``torch.autograd.Function``s with the gradients written by the chain rule,

@@ -7,6 +7,9 @@ the policy delay; :func:`torchrl_esrl.algorithm.td3_phase.td3_phase` runs it ins
 from __future__ import annotations
 
 import contextlib
+import logging
+import sys
+from collections.abc import Collection
 
 import torch
 from tensordict import TensorDictBase
@@ -15,8 +18,15 @@ from torchrl.modules import AdditiveGaussianModule
 from torchrl.objectives import SoftUpdate, TD3Loss
 
 from torchrl_esrl.errors import check_finite
+from torchrl_esrl.modules.networks import NETWORK_FIELD, actor_parameters
+from torchrl_esrl.modules.warmup import RandomWarmup
 from torchrl_esrl.objectives.manual_grad import ManualGradTD3Loss, TD3LossQ1Actor, backward
+from torchrl_esrl.run.capacity import Holding, mlp_parameters, network_holding
+from torchrl_esrl.run.implementation import chosen_pieces
+from torchrl_esrl.threads import job_cores
 from torchrl_esrl.torchrl_private import foreach_lerp_, fused_adam_step, soft_update_tensors
+
+run_record = logging.getLogger("torchrl_esrl.run")  # the run directory's <recipe>.log (conf/hydra/job_logging/run_log.yaml)
 
 __all__ = ["TD3", "ForeachSoftUpdate", "ManualGradTD3Loss", "TD3LossQ1Actor"]
 
@@ -88,7 +98,7 @@ class TD3:
     (``requires_grad_(False)``), work as in any PyTorch training loop, with every ``loss_class``.
 
     The reference is TorchRL's stock TD3 (``TD3Loss``, ``SoftUpdate``, ``Adam``);
-    :func:`torchrl_esrl.run.factories.make_td3` picks the fast pieces.
+    :func:`make_td3` builds it from the config with the fast pieces chosen.
     """
 
     # Parameter vectors held (and checkpointed), for the run's memory estimate: the actor, its
@@ -206,3 +216,48 @@ class TD3:
         self.actor_optimizer.load_state_dict(state["actor_optimizer"])
         self.critic_optimizer.load_state_dict(state["critic_optimizer"])
         self.updates = int(state["updates"])
+
+
+# ------------------------------------------------------------ built from the config (recipes)
+BF16_WARNING = (
+    "warning: td3.precision=bf16 runs the TD3 actor's tanh squash in bfloat16, whose gradient is exactly 0 once the "
+    "actor saturates, so the actor can stop learning: not for results (docs/deviations.md, 39)"
+)
+
+
+def make_td3(cfg, actor, critic, action_spec, pieces: Collection[str] | None = None) -> TD3:
+    """TD3 of the ``td3`` section, with the fast pieces chosen (:mod:`torchrl_esrl.run.implementation`);
+    with ``td3.random_frames`` > 0 its behaviour policy acts uniformly at random for that many
+    frames first (Fujimoto's ``start_timesteps``, :class:`RandomWarmup`)."""
+    c, fast = cfg.td3, chosen_pieces(cfg, pieces)
+    td3 = TD3(
+        actor,
+        critic,
+        action_spec.to(cfg.device),
+        lr=c.lr,
+        gamma=c.gamma,
+        tau=c.tau,
+        policy_noise=c.policy_noise,
+        noise_clip=c.noise_clip,
+        policy_delay=c.policy_delay,
+        exploration_noise=c.exploration_noise,
+        loss_function=c.loss_function,
+        loss_class=ManualGradTD3Loss if "td3_loss" in fast else TD3Loss,  # it hands over to TD3Loss's autograd where it cannot compute exactly
+        target_update_class=ForeachSoftUpdate if "soft_update" in fast else SoftUpdate,
+        optimizer_impl="fused" if "adam" in fast else "default",
+        num_threads=c.num_threads if c.num_threads is not None else job_cores(),
+        precision=c.precision,
+    )
+    if c.precision == "bf16":
+        run_record.warning(BF16_WARNING)
+        print(BF16_WARNING, file=sys.stderr, flush=True)
+    if c.random_frames > 0:
+        td3.exploration_policy = RandomWarmup(td3.exploration_policy, action_spec, c.random_frames, seed=int(cfg.seed) + 3)
+    return td3
+
+
+def td3_holdings(cfg, sizes) -> list[Holding]:
+    """:func:`make_td3`'s networks and optimiser states (:attr:`TD3.HELD_ACTOR_COPIES`, ...), for
+    the run's memory estimate (:mod:`torchrl_esrl.run.capacity`)."""
+    critic = mlp_parameters([sizes.observation_dim + sizes.action_dim, *cfg.td3.critic_hidden, 1])
+    return [network_holding(TD3.HELD_ACTOR_COPIES, actor_parameters(cfg, sizes), NETWORK_FIELD), network_holding(TD3.HELD_CRITIC_COPIES, critic, NETWORK_FIELD)]

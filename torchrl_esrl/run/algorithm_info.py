@@ -38,6 +38,14 @@ def load_recipe(path: str | Path):
     return module
 
 
+def training_recipes(recipes_dir: str | Path) -> dict[str, object]:
+    """The recipes of ``recipes_dir`` that train, by file name: the modules whose ``main``
+    :func:`~torchrl_esrl.run.lifecycle.recipe_main` built (it carries ``main.recipe``); scripts
+    such as ``report.py`` are left out."""
+    modules = {path.name: load_recipe(path) for path in sorted(Path(recipes_dir).glob("*.py"))}
+    return {name: module for name, module in modules.items() if hasattr(getattr(module, "main", None), "recipe")}
+
+
 def discover(recipes_dir: str | Path) -> dict[str, AlgorithmInfo]:
     """Every ``ALGORITHMS`` entry of the recipe modules in ``recipes_dir``, by name."""
     found: dict[str, AlgorithmInfo] = {}

@@ -4,14 +4,13 @@ A recipe lists what it builds as :class:`Holding` s (its ``holdings(cfg, sizes)`
 :func:`~torchrl_esrl.run.lifecycle.recipe_main`): each component says what it holds, from the
 config and the task's observation and action sizes, without allocating it:
 
-- replay buffers at full capacity (:func:`~torchrl_esrl.run.factories.buffer_holdings`):
+- replay buffers at full capacity (:func:`~torchrl_esrl.data.multibuffer.buffer_holdings`):
   each transition holds what :data:`~torchrl_esrl.data.multibuffer.TRANSITION_KEYS` lists plus TorchRL's ``index``
   (:func:`bytes_per_transition`); a ``LazyTensorStorage`` allocates its whole capacity at the
   first write;
 - an evolution strategy's population and noise, and one generation's transitions, held until
-  they are routed to the buffers (:func:`~torchrl_esrl.run.factories.es_holdings`,
-  :func:`~torchrl_esrl.run.factories.cem_holdings`);
-- networks and optimiser states (:func:`~torchrl_esrl.run.factories.td3_holdings`).
+  they are routed to the buffers (:func:`~torchrl_esrl.es.strategy.strategy_holdings`);
+- networks and optimiser states (:func:`~torchrl_esrl.objectives.td3.td3_holdings`).
 
 :func:`estimate` adds them up, and one checkpoint on disk (what is checkpointed, plus a margin
 for the manifests). :func:`check_capacity` refuses a run whose estimate exceeds the available
@@ -28,7 +27,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from torchrl_esrl.errors import ConfigError
-from torchrl_esrl.run.checkpoint import CHECKPOINT_DIR
 
 FLOAT = 4  # float32 observations, actions, rewards and parameters
 CHECKPOINT_MARGIN = 2**20  # manifests, schemas and small components of one checkpoint
@@ -126,6 +124,8 @@ def free_disk(path: Path) -> tuple[int, Path]:
 
 def existing_checkpoints(run_dir: Path) -> int:
     """Bytes already taken by ``run_dir``'s checkpoints (replaced as the run goes on)."""
+    from torchrl_esrl.run.checkpoint import CHECKPOINT_DIR  # here: the components that declare their holdings import this module
+
     directory = Path(run_dir) / CHECKPOINT_DIR
     if not directory.is_dir():
         return 0

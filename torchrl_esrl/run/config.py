@@ -2,10 +2,12 @@
 
 Each failure is a :class:`~torchrl_esrl.errors.ConfigError` with one line,
 ``<field>: <value> ... (allowed: ...)``. Types and unknown keys are the typed schema's job
-(:mod:`torchrl_esrl.run.schema`), and so is each key's own check: :func:`validate_config` walks
-the schema's fields and runs the check each one carries (a range, a choice, a function), then the
-checks that relate fields to each other, listed here. The renamed keys (:data:`RENAMED`) and the
-keys added since runs were first checkpointed (:data:`ADDED`) are read from the schema too.
+(:mod:`torchrl_esrl.run.schema`: every run's keys, and a recipe's own sections), and so is each
+key's own check: :func:`validate_config` walks the schema's fields and runs the check each one
+carries (a range, a choice, a function) and each section's checks across its own keys, then the
+checks that relate sections to each other, listed here. The renamed keys (:func:`renamed_keys`)
+and the keys added since runs were first checkpointed (:func:`added_keys`) are read from the
+schema too.
 """
 from __future__ import annotations
 
@@ -48,12 +50,16 @@ def _default(item: dataclasses.Field):
     return item.default_factory() if item.default_factory is not dataclasses.MISSING else item.default
 
 
-# Keys that were renamed: old name -> what replaced it (the schema keeps the old name, unset, so that a
-# config using it reaches this check instead of Hydra's unknown-key error).
-RENAMED: dict[str, Renamed] = {key: item.metadata["renamed"] for key, item, _ in schema_fields() if "renamed" in item.metadata}
-# Keys added to the schema since runs were first checkpointed: key -> the value a config saved before
-# it existed had in effect, so that such a run resumes under today's config.
-ADDED: dict[str, object] = {key: _default(item) for key, item, _ in schema_fields() if item.metadata.get("added")}
+def renamed_keys(schema=RunConfig) -> dict[str, Renamed]:
+    """Keys of ``schema`` that were renamed: old name -> what replaced it (the schema keeps the old
+    name, unset, so that a config using it reaches this check instead of Hydra's unknown-key error)."""
+    return {key: item.metadata["renamed"] for key, item, _ in schema_fields(schema) if "renamed" in item.metadata}
+
+
+def added_keys(schema=RunConfig) -> dict[str, object]:
+    """Keys added to ``schema`` since runs were first checkpointed: key -> the value a config saved
+    before it existed had in effect, so that such a run resumes under today's config."""
+    return {key: _default(item) for key, item, _ in schema_fields(schema) if item.metadata.get("added")}
 
 
 def _get_or_none(cfg, field: str):
@@ -131,12 +137,18 @@ def _call(field: str, value, function: str) -> None:
 CHECKS = {"number": _number, "choice": _choice, "layers": _layers, "name": _name, "host_port": _host_port, "mapping": _mapping, "call": _call}
 
 
+def schema_of(cfg):
+    """The schema ``cfg`` was composed with (a recipe's, or :class:`RunConfig`); an untyped config is read as RunConfig."""
+    schema = OmegaConf.get_type(cfg)
+    return schema if dataclasses.is_dataclass(schema) else RunConfig
+
+
 def check_fields(cfg, schema=None, prefix: str = "") -> None:
     """Each key's own check, as its schema field carries it (:mod:`torchrl_esrl.run.schema`), in the
-    schema's order. ``schema``: the config's own (an untyped config, a resumed run's, is read as
-    :class:`RunConfig`). A section or an Optional key that is null is not checked."""
-    if schema is None:
-        schema = OmegaConf.get_type(cfg) if dataclasses.is_dataclass(OmegaConf.get_type(cfg)) else RunConfig
+    schema's order, and after a section's keys its ``check(section, key)``, where it has one.
+    ``schema``: by default the config's own (:func:`schema_of`). A section or an Optional key that
+    is null is not checked."""
+    schema = schema_of(cfg) if schema is None else schema
     hints = typing.get_type_hints(schema)
     for item in dataclasses.fields(schema):
         key, value = f"{prefix}{item.name}", cfg[item.name]
@@ -145,6 +157,8 @@ def check_fields(cfg, schema=None, prefix: str = "") -> None:
         section = section_of(hints[item.name])
         if section is not None:
             check_fields(value, section, f"{key}.")
+            if callable(getattr(section, "check", None)):
+                section.check(value, key)
         elif "check" in item.metadata:
             check = dict(item.metadata["check"])
             CHECKS[check.pop("kind")](key, value, **check)
@@ -172,13 +186,15 @@ def check_known_keys(cfg, path: str = "") -> None:
             check_known_keys(value, f"{name}.")
 
 
-def validate_config(cfg) -> None:
-    """Every key's check (:func:`check_fields`), then the checks across keys."""
+def validate_config(cfg, schema=None) -> None:
+    """Every key's check (:func:`check_fields`), then the checks across sections. ``schema``: the
+    recipe's (:func:`torchrl_esrl.run.schema.recipe_schema`), by default the one ``cfg`` was composed with."""
+    schema = schema_of(cfg) if schema is None else schema
     check_known_keys(cfg)
-    for old, new in RENAMED.items():
+    for old, new in renamed_keys(schema).items():
         if _get_or_none(cfg, old) is not None:
             raise ConfigError(f"{old}: renamed to {new.to} ({new.how})")
-    check_fields(cfg)
+    check_fields(cfg, schema)
 
     td3, es, buffer = cfg.td3, cfg.es, cfg.buffer
     if td3.frames_per_iteration % td3.frames_per_batch:

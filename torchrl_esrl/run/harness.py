@@ -28,13 +28,12 @@ from omegaconf import DictConfig
 
 from torchrl_esrl.envs import quiet_logs
 from torchrl_esrl.errors import error_line
-from torchrl_esrl.collectors.es_collector import ESCollector
+from torchrl_esrl.collectors.es_collector import ESCollector, make_evaluator
 from torchrl_esrl.modules.networks import flat_parameters
 from torchrl_esrl.run.algorithm_info import AlgorithmInfo
 from torchrl_esrl.run.plot import plot_run
 from torchrl_esrl.run.console import returns_text
 from torchrl_esrl.run.determinism import seed_everything
-from torchrl_esrl.run.factories import make_evaluator
 from torchrl_esrl.run.metrics import MetricsLog, write_json
 
 

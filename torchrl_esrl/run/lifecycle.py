@@ -1,8 +1,9 @@
 """One run lifecycle for every recipe.
 
-``main = recipe_main(train, config_name=..., algorithm=..., holdings=...)`` gives a recipe's ``main``: Hydra
-composes ``conf/<config_name>.yaml``; the config, the task, the memory and disk the run needs and
-what the run directory holds are checked once, before Hydra writes into the run directory
+``main = recipe_main(train, config_name=..., algorithm=..., holdings=..., sections=...)`` gives a recipe's
+``main``: Hydra composes ``conf/<config_name>.yaml`` against the recipe's schema (every run's keys and its
+own ``sections``, :func:`~torchrl_esrl.run.schema.recipe_schema`); the config, the task, the memory and
+disk the run needs and what the run directory holds are checked once, before Hydra writes into the run directory
 (:class:`ValidateBeforeRun`; in a multirun, each job checks its own); then ``train(cfg, run)``
 runs with a :class:`Run` that seeds, makes kernels deterministic, logs, evaluates, checkpoints at
 every iteration boundary and resumes from the run directory's last readable checkpoint. A
@@ -37,7 +38,8 @@ import os
 import shlex
 import signal
 import sys
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Mapping
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -56,12 +58,13 @@ from torchrl_esrl.run.capacity import Holding, estimate
 from torchrl_esrl.run.checkpoint import CHECKPOINT_DIR, RunCheckpoint
 from torchrl_esrl.run.console import final_lines, iteration_line, print_config
 from torchrl_esrl.run.determinism import make_deterministic
-from torchrl_esrl.run.factories import component, implementation_line, implementations
+from torchrl_esrl.run.implementation import component, implementation_line, implementations
 from torchrl_esrl.run.harness import RunHarness
 from torchrl_esrl.run.lock import RunLock
 from torchrl_esrl.run.metrics import read_metrics
 from torchrl_esrl.run.progress import RunProgress
 from torchrl_esrl.run.resume import Finished, algorithm_of, fresh_run_dir, holds_run, prepare_run
+from torchrl_esrl.run.schema import recipe_schema
 from torchrl_esrl.run.stop import STOP_GRACE_S, StopOnSignal, Stopped
 
 CONF_DIR = Path(__file__).resolve().parents[2] / "conf"
@@ -166,16 +169,33 @@ def threads_used(components: dict) -> dict:
     return threads
 
 
+@dataclass(frozen=True)
+class Recipe:
+    """What a recipe gave :func:`recipe_main` (``main.recipe``): its config and its schema (and
+    the name its top config lists first), what it runs and what it holds."""
+
+    config_name: str
+    schema: type
+    schema_name: str
+    algorithm: AlgorithmInfo | Callable[[DictConfig], AlgorithmInfo]
+    holdings: Callable[[DictConfig, EnvSizes], list[Holding]]
+
+
 def recipe_main(
     train: Callable[[DictConfig, Run], dict],
     config_name: str,
     algorithm: AlgorithmInfo | Callable[[DictConfig], AlgorithmInfo],
     holdings: Callable[[DictConfig, EnvSizes], list[Holding]],
+    sections: Mapping[str, type] | None = None,
 ) -> Callable[[], None]:
     """The ``main`` of a recipe whose loop is ``train(cfg, run)``, composed from ``conf/<config_name>.yaml``.
     ``algorithm``: what it runs (a function of the config for a recipe with variants), named in
     ``summary.json``; ``holdings(cfg, sizes)``: what it builds (:mod:`~torchrl_esrl.run.capacity`),
-    checked against the machine before any work."""
+    checked against the machine before any work; ``sections``: the config sections of its own
+    (key -> a dataclass of fields with defaults and checks, declared beside the recipe or its
+    component), added to every run's keys under ``<config_name>_schema``, the name its top config
+    lists first (``run_schema`` without). ``main.recipe`` holds all of it (:class:`Recipe`)."""
+    schema, schema_name = recipe_schema(config_name, sections)
 
     @hydra.main(version_base="1.3", config_path=str(CONF_DIR), config_name=config_name)
     @functools.wraps(train)  # Hydra names the job, and its log file, after the recipe's file
@@ -215,7 +235,9 @@ def recipe_main(
 
     recipe = {"algorithm": algorithm, "holdings": holdings}
     _recipe.update(recipe)  # for ValidateBeforeRun
-    return functools.partial(run_cli, main)
+    cli = functools.partial(run_cli, main)
+    cli.recipe = Recipe(config_name, schema, schema_name, algorithm, holdings)
+    return cli
 
 
 # ------------------------------------------------------------------ config checks, once a launch

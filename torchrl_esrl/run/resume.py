@@ -11,7 +11,9 @@ directory that holds one (:func:`fresh_run_dir`).
 from __future__ import annotations
 
 import copy
+import dataclasses
 import json
+import typing
 from collections.abc import Callable
 from pathlib import Path
 
@@ -23,7 +25,8 @@ from torchrl_esrl.errors import ConfigError
 from torchrl_esrl.run.algorithm_info import AlgorithmInfo
 from torchrl_esrl.run.capacity import Holding, check_capacity, estimate
 from torchrl_esrl.run.checkpoint import CHECKPOINT_DIR, newest_readable, no_readable_checkpoint
-from torchrl_esrl.run.config import ADDED, RENAMED, check_output_dir, validate_config
+from torchrl_esrl.run.config import added_keys, check_output_dir, renamed_keys, schema_of, section_of, validate_config
+from torchrl_esrl.run.schema import RunConfig
 
 IGNORED_ON_RESUME = ("resume", "fresh", "logger", "checkpoint", "hydra")  # may change between a run and its resume
 SUMMARY = "summary.json"
@@ -104,18 +107,33 @@ def _node(config: dict, key: str, create: bool = False) -> tuple[dict | None, st
     return config, name
 
 
-def in_todays_names(saved: dict) -> dict:
-    """A checkpoint's config in today's key names (the schema's renamed and added keys, ``run/config.py``'s
-    ``RENAMED`` and ``ADDED``), so that a run started before a rename or an added key resumes:
-    ``td3.fast: true|false`` is ``implementation: fast|reference``, the top-level ``mode`` is
-    ``es.schedule``, a missing ``env.kwargs`` is ``{}``."""
-    saved = copy.deepcopy(saved)
-    for old, new in RENAMED.items():
+def _in_schema(saved: dict, schema) -> dict:
+    """The keys of ``saved`` that ``schema`` defines, section by section (open mappings whole)."""
+    hints = typing.get_type_hints(schema)
+    kept = {}
+    for item in dataclasses.fields(schema):
+        if item.name in saved:
+            value, section = saved[item.name], section_of(hints[item.name])
+            kept[item.name] = _in_schema(value, section) if section is not None and isinstance(value, dict) else value
+    return kept
+
+
+def in_todays_names(saved: dict, schema=None) -> dict:
+    """A checkpoint's config in today's key names, so that a run started before a rename or an
+    added key resumes: the renamed and added keys of the recipe's ``schema`` (``run/config.py``'s
+    :func:`renamed_keys` and :func:`added_keys`; by default every run's): ``td3.fast: true|false``
+    is ``implementation: fast|reference``, the top-level ``mode`` is ``es.schedule``, a missing
+    ``env.kwargs`` is ``{}``. With a ``schema``, the keys it does not define are left out: a
+    section the recipe does not have, which its runs saved, null, when every recipe's config held
+    every section, and nothing of the recipe read."""
+    saved = copy.deepcopy(saved) if schema is None else _in_schema(copy.deepcopy(saved), schema)
+    schema = RunConfig if schema is None else schema
+    for old, new in renamed_keys(schema).items():
         section, name = _node(saved, old)
         if section is not None and section.get(name) is not None:
             target, to_name = _node(saved, new.to, create=True)
             target[to_name], section[name] = new.convert(section[name]), None
-    for key, value in ADDED.items():  # keys a config saved before they existed had at these values
+    for key, value in added_keys(schema).items():  # keys a config saved before they existed had at these values
         section, name = _node(saved, key)
         if section is not None and name not in section:
             section[name] = copy.deepcopy(value)
@@ -143,7 +161,7 @@ def prepare_run(
     ``<dir>`` with the config saved in its checkpoint (``logger`` and ``checkpoint`` settings
     from the command line).
     """
-    resume = cfg.resume
+    resume, schema = cfg.resume, schema_of(cfg)  # the recipe's schema, as Hydra composed its config
     if resume and cfg.get("fresh"):
         raise ConfigError(f"fresh: true asks for a new run, resume={resume} to continue one (allowed: one of them)")
     field = "resume" if resume else "hydra.run.dir"
@@ -151,7 +169,7 @@ def prepare_run(
     readable, damaged = newest_readable(run_dir) if run_dir.is_dir() else (None, [])
     metadata = Checkpoint.manifest(readable)["metadata"] if readable is not None else None
     summary = finished_summary(run_dir)
-    saved = in_todays_names(metadata["config"]) if metadata is not None else None
+    saved = in_todays_names(metadata["config"], schema) if metadata is not None else None
     current = OmegaConf.to_container(OmegaConf.masked_copy(cfg, [k for k in cfg if k != "hydra"]), resolve=True)
     if resume and saved is None:
         if summary is not None:
@@ -164,7 +182,7 @@ def prepare_run(
             if key in current:
                 saved[key] = current[key]
         cfg = OmegaConf.create(saved)
-    validate_config(cfg)
+    validate_config(cfg, schema)
     name = algorithm_of(algorithm, cfg).name if algorithm is not None else None
     sizes = EnvSpec.from_config(cfg.env).checked_sizes()  # the env played in a child process: refuses what the algorithms cannot take or it cannot play
     _check_identity(field, run_dir, name, resolve_env_id(cfg.env.id), metadata, summary)

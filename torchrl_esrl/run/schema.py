@@ -1,29 +1,36 @@
-"""Every config key, written once: its type, its default and its value check (Hydra structured
-configs).
+"""How a config key is declared (its type, its default and its value check, once: Hydra
+structured configs), and the keys of every run.
 
-The defaults are the paper's hyper-parameters (Table 2, Sections 4.2-4.3); every departure is in
-docs/deviations.md. One schema, :class:`RunConfig`, holds the section of every component (env, TD3,
-actor, OpenAI-ES, CEM, buffers...); a recipe's top config (``conf/<recipe>.yaml``) lists it first,
-so Hydra rejects unknown keys and wrong types while composing, then sets what that recipe changes
-(a warm-up, a section left None here). The YAML files hold only what differs from the defaults
-here. A field's check (``metadata["check"]``, made by :func:`number`, :func:`one_of`...) is run by
-:func:`torchrl_esrl.run.config.validate_config`; checks across fields live there.
+:class:`RunConfig` holds what every recipe's config has: the run's own keys (seed, iterations,
+device, resume...) and the sections of the components the experiment presets scale for every
+recipe (env, TD3, actor, OpenAI-ES, buffers, threshold, overwrite rule, evaluation, logger, Ray,
+checkpoints). Their defaults are the paper's hyper-parameters (Table 2, Sections 4.2-4.3); every
+departure is in docs/deviations.md. A section only some recipes have (an algorithm's own
+hyper-parameters) is a dataclass declared beside its component or recipe with the same field
+helpers, and a recipe that has it adds it: ``recipe_main(..., sections={"<key>": <dataclass>})``
+registers :func:`recipe_schema`, RunConfig's keys and those sections, under ``<config>_schema``,
+which its top config (``conf/<config>.yaml``) lists first (a recipe without sections of its own
+lists ``run_schema``). So Hydra rejects unknown keys and wrong types while composing; the YAML
+files hold only what differs from the defaults. A
+field's check (``metadata["check"]``, made by :func:`number`, :func:`one_of`...) is run by
+:func:`torchrl_esrl.run.config.validate_config`, and so is a section's ``check(section, key)``,
+its checks across its own keys; checks across sections live there.
 
-To add a key: add its field here, with its default and check. If runs checkpointed before it
-existed must resume, make it :func:`added` (their configs get the default); a key that changes
-name keeps its old one as :func:`renamed`. A new component's section is a new dataclass and one
-field of :class:`RunConfig`, Optional and None where only some recipes build the component.
+To add a key: add its field to its section, with its default and check. If runs checkpointed
+before it existed must resume, make it :func:`added` (their configs get the default); a key that
+changes name keeps its old one as :func:`renamed`.
 """
 from __future__ import annotations
 
 import copy
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields, make_dataclass
+from collections.abc import Mapping
 from typing import Any, Callable, Dict, List, Optional
 
 from hydra.core.config_store import ConfigStore
 from omegaconf import MISSING
 
-SCHEMA_NAME = "run_schema"  # the node every recipe's top config lists first
+SCHEMA_NAME = "run_schema"  # the node the top config of a recipe without sections of its own lists first
 SEED_LIMIT = 2**31 - 2000  # numpy seeds are < 2**32; the recipes add up to 1000 for their streams
 # logger.backend -> the package its TorchRL logger needs ("" = no logger, csv = no extra package)
 LOGGER_PACKAGES = {"": None, "csv": None, "tensorboard": "tensorboard", "wandb": "wandb", "mlflow": "mlflow", "trackio": "trackio"}
@@ -214,29 +221,13 @@ class RayConfig:
 
 
 @dataclass
-class CEMConfig:
-    """The CEM population of CEM-RL (Pourchot and Sigaud 2019; torchrl_esrl/es/cem.py): values of the
-    authors' code (es_grad.py, ES.py sepCEM) where the CEM-RL paper's table is silent."""
-
-    population_size: int = number(10, low=2, integer=True)  # CEM-RL: 10 actors
-    rl_fraction: float = number(0.5, low=0, high=1)  # n_grad = 5 of 10: per member F/5 critic steps, then F actor steps
-    elite_fraction: float = number(0.5, low=0, high=1, low_open=True)  # parents = pop/2 update mean and variance
-    sigma_init: float = positive(1.0e-3)  # initial VARIANCE of every coordinate (reference sigma_init)
-    damping_init: float = number(1.0e-3, low=0)
-    damping_end: float = number(1.0e-5, low=0)
-    damping_tau: float = number(0.95, low=0, high=1)
-    antithetic: bool = True  # mirrored pairs for an even population, as the reference
-    start_frames: int = number(10000, low=0, integer=True)  # reference start_steps: no gradient steps before this many frames
-
-
-@dataclass
 class RunConfig:
-    """The config of every recipe: one section per component. Sections a recipe does not read stay,
-    so that every run's saved config, and its resume, keeps the same keys."""
+    """The keys of every recipe's config: the run's own, and one section per component the
+    experiment presets scale (a recipe that does not read a section still has it)."""
 
     seed: int = number(0, low=0, high=SEED_LIMIT, integer=True)
     # fast | reference: reference is stock TorchRL end to end; fast swaps in pieces proven equal (docs/performance.md)
-    implementation: str = one_of("fast", among="torchrl_esrl.run.factories.IMPLEMENTATIONS")
+    implementation: str = one_of("fast", among="torchrl_esrl.run.implementation.IMPLEMENTATIONS")
     device: str = checked_by("cpu", "torchrl_esrl.run.config.validate_device")
     iterations: int = count(20)  # outer loop of Algorithm 1
     experiment_name: str = checked("paper", "name")  # the experiment preset's name (conf/experiment/)
@@ -255,11 +246,31 @@ class RunConfig:
     mode: Optional[str] = renamed("es.schedule", "es.schedule=sequential or es.schedule=async")
     ray: RayConfig = field(default_factory=RayConfig)
     checkpoint: CheckpointConfig = field(default_factory=CheckpointConfig)
-    cem: Optional[CEMConfig] = None  # the CEM population; a recipe that builds one sets `cem: {}` (these defaults) in its YAML
 
 
-def register_schema() -> None:
-    ConfigStore.instance().store(name=SCHEMA_NAME, node=RunConfig)
+def schema_name(config_name: str) -> str:
+    """The ConfigStore name of the schema of the recipe whose top config is ``conf/<config_name>.yaml``."""
+    return f"{config_name}_schema"
 
 
-register_schema()
+def recipe_schema(config_name: str, sections: Mapping[str, type] | None = None) -> tuple[type, str]:
+    """The schema of a recipe and the name its top config lists first: :class:`RunConfig` as
+    ``run_schema`` without ``sections``; else RunConfig's keys and ``sections`` (key -> section
+    dataclass, at its defaults), registered with Hydra's ConfigStore as ``<config_name>_schema``."""
+    if not sections:
+        return RunConfig, SCHEMA_NAME
+    clash = sorted(set(sections) & {item.name for item in fields(RunConfig)})
+    if clash:
+        raise ValueError(f"sections {clash} are keys of every run's config already (torchrl_esrl/run/schema.py)")
+    name = schema_name(config_name)
+    schema = make_dataclass(
+        "".join(part.title() for part in name.split("_")),
+        [(key, section, field(default_factory=section)) for key, section in sections.items()],
+        bases=(RunConfig,),
+    )
+    schema.__doc__ = f"conf/{config_name}.yaml's keys: every run's (RunConfig) and {', '.join(sections)}."
+    ConfigStore.instance().store(name=name, node=schema)
+    return schema, name
+
+
+ConfigStore.instance().store(name=SCHEMA_NAME, node=RunConfig)
