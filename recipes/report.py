@@ -5,13 +5,16 @@
 
 Writes results.csv/.md (Table 1: mean, std, median per env x algorithm, plus the IQM with a 95%
 stratified-bootstrap CI), improvement.csv/.md (probability of improvement of --reference),
-pairwise.csv/.md (exact permutation test of every pair of rows, Holm-corrected per task),
-aggregate.csv/.md and aggregate.png (scores normalised by --normalise-by across 2+ tasks), runs.csv/.md (one row per
-run), curves_<env>.png (against TD3 and total frames), buffers_<env>.png, es_vs_td3_<env>*.png,
-ratio_sweep_<env>.png and hard_vs_soft_<env>.png; overwrites.csv/.md (per ES-TD3 row, the runs whose ES mean
-was ever overwritten, and the ES mean against its own TD3 actor run by run), summary.md (per task: IQMs,
+pairwise.csv/.md (exact permutation test of every pair of rows, Holm-corrected per task, and the
+smallest shift of a row that test would call), aggregate.csv/.md and aggregate.png (scores normalised
+by --normalise-by across 2+ tasks), runs.csv/.md (one row per run: its overwrites, its training clock
+net of holds with the held time beside), curves_<env>.png (against TD3 and total frames),
+buffers_<env>.png, es_vs_td3_<env>*.png, ratio_sweep_<env>.png and hard_vs_soft_<env>.png;
+overwrites.csv/.md (per ES-TD3 row, the overwrites of each run, the runs whose ES mean was ever
+overwritten, and the ES mean against its own TD3 actor run by run), summary.md (per task: IQMs,
 overwrites, the differences called), iterations.md (every iteration of a row's only run) and
-timing.md (timing.txt, pieces.txt).
+timing.md (timing.txt, pieces.txt: each run's seconds net of its holds, pauses.txt; an attempt
+missing from the record).
 
 With --overview, only overview.csv/.md: the paper's Table 1 (--paper-table, a CSV) beside the
 runs' final returns per experiment preset; --started names a file of runs started but not recorded ("<env id> <algorithm>

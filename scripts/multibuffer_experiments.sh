@@ -26,9 +26,12 @@
 # before any checkpoint was complete starts over. Every finished run's metrics.csv, summary.json and
 # config.yaml are copied to $RESULTS/<env>/<row>_seed<k>/ (commit them; COMMIT=1 commits each one as it
 # lands), with timing.txt: one line per attempt (exit status, seconds of the command, the commit it ran
-# on; a started-over run's earlier attempts first, marked "(started over)"), so a resumed run's
-# wall-clock is the sum of its unmarked lines, and pauses.txt where scripts/pause_runs.sh held the run
-# (its seconds include the held time). A recorded run's checkpoints are then deleted
+# on, its start (UTC), the mean and largest 1-minute load average over it, sampled every 2 s; a
+# started-over run's earlier attempts first, marked "(started over)"), so a resumed run's wall-clock is
+# the sum of its lines; pauses.txt where scripts/pause_runs.sh held the run (its seconds include the held
+# time, which recipes/report.py subtracts: timing.md); run.log, the run's own log (each iteration's end,
+# UTC, and the training clock then, which places the holds); and arithmetic.txt where its kept attempts
+# ran on more than one commit (scripts/arithmetic_record.sh). A recorded run's checkpoints are then deleted
 # (KEEP_CHECKPOINTS=1 keeps them): a finished run is never continued, and at SET=miniature the 80
 # runs' checkpoints would need about 60 GB (an ES-TD3Buffers run on Ant keeps two of 2.7 GB).
 #
@@ -106,15 +109,24 @@ run_one() {
       rm -rf "$dir"
     fi
     mkdir -p "$(dirname "$dir")"
-    start=$(date +%s) commit=$(git rev-parse HEAD)
+    start=$(date +%s) started=$(date -u +%FT%TZ) commit=$(git rev-parse HEAD)
     # shellcheck disable=SC2086  # EXTRA: several overrides, split on purpose
     # TORCHRL_ESRL_JOBS: JOBS runs share the machine, each takes its share of the cores (torchrl_esrl/threads.py)
     TORCHRL_ESRL_JOBS=$JOBS "$PYTHON" "recipes/$recipe" env="$env" experiment="$PRESET" seed="$seed" "$@" $EXTRA \
-      logger.progress=false hydra.run.dir="$dir" > "$dir.log" 2>&1
+      logger.progress=false hydra.run.dir="$dir" > "$dir.log" 2>&1 &
+    pid=$! sum=0 count=0 peak=0
+    while kill -0 "$pid" 2> /dev/null; do  # the machine's 1-minute load average, in hundredths, every 2 s
+      load=$(cut -d' ' -f1 /proc/loadavg | tr -d .) load=$((10#$load))
+      sum=$((sum + load)) count=$((count + 1)) peak=$((load > peak ? load : peak))
+      sleep 2
+    done
+    wait "$pid"
     status=$?
+    mean=$((sum / (count > 0 ? count : 1)))
     mkdir -p "$dir"
     if [ -n "$earlier" ]; then printf '%s\n' "$earlier" | sed '/(started over)$/!s/$/ (started over)/' >> "$dir/timing.txt"; fi
-    echo "$env $name: exit $status after $(( $(date +%s) - start )) s on commit $commit" | tee -a "$WORK/timings.txt" >> "$dir/timing.txt"
+    printf '%s: exit %s after %s s on commit %s started %s load_mean %d.%02d load_max %d.%02d\n' "$env $name" "$status" "$(( $(date +%s) - start ))" \
+      "$commit" "$started" $((mean / 100)) $((mean % 100)) $((peak / 100)) $((peak % 100)) | tee -a "$WORK/timings.txt" >> "$dir/timing.txt"
   fi
   [ -f "$dir/summary.json" ] || return 1
   mkdir -p "$dest"
@@ -122,6 +134,10 @@ run_one() {
   cp "$dir/.hydra/config.yaml" "$dest/config.yaml"
   if [ -f "$dir/timing.txt" ]; then cp "$dir/timing.txt" "$dest/"; fi
   if [ -f "$dir.pauses" ]; then cp "$dir.pauses" "$dest/pauses.txt"; fi  # scripts/pause_runs.sh: held while a benchmark ran
+  if [ -f "$dir/${recipe%.py}.log" ]; then cp "$dir/${recipe%.py}.log" "$dest/run.log"; fi  # the run's own log: each iteration's time
+  # shellcheck disable=SC2046  # one argument per commit the run's kept attempts ran on
+  scripts/arithmetic_record.sh "$dest" "$recipe" "$env" $(grep -v '(started over)$' "$dest/timing.txt" 2> /dev/null | sed -n 's/.* on commit \([0-9a-f]*\).*/\1/p') \
+    || echo "$env $name: arithmetic.txt not written (scripts/arithmetic_record.sh failed)" >&2
   if [ "$KEEP_CHECKPOINTS" != 1 ]; then rm -rf "$dir/checkpoints"; fi
   if [ "$COMMIT" = 1 ]; then flock "$WORK/.git.lock" sh -c 'git add "$1" && git commit -q -m "results: $2 (experiment=$3)" -- "$1"' _ "$dest" "$env $name" "$PRESET"; fi
 }

@@ -8,15 +8,17 @@
 # Each call runs one piece: the run continues from its own checkpoints (hydra.run.dir=run_dir; a
 # checkpoint every 50k TD3 frames as well as at every iteration boundary, so a killed piece loses at
 # most one ES phase). While a piece runs, <run_dir>.piece<N>.alive holds its commit, start, seconds so
-# far and peak resident memory (VmHWM), rewritten every 2 s, so a piece killed with its session
-# still has a record. <run_dir>.pieces gets one line per piece: that record and how it ended (exit
-# status, or "killed" for a piece that left only its .alive file). Once the run has written
-# summary.json, its records go to $RESULTS: metrics.csv, summary.json, config.yaml, pieces.txt,
-# checkpoints.txt (the size in bytes of each checkpoint kept at the end), pauses.txt (when
-# scripts/pause_runs.sh held the run, if it did), arithmetic.txt (where the pieces ran on more than one
-# commit: scripts/tiny_digest.sh of the recipe on each, equal digests meaning the same arithmetic); and
-# the report of the one run goes to $REPORT (recipes/report.py: curves, buffer sizes, ES mean vs
-# TD3 actor). A finished run is never rewritten: calling again only copies the records.
+# far, peak resident memory (VmHWM) and the machine's 1-minute load average so far (mean and largest,
+# sampled every 2 s), rewritten every 2 s, so a piece killed with its session still has a record.
+# <run_dir>.pieces gets one line per piece: that record and how it ended (exit status, or "killed" for a
+# piece that left only its .alive file). Once the run has written summary.json, its records go to
+# $RESULTS: metrics.csv, summary.json, config.yaml, pieces.txt, checkpoints.txt (the size in bytes of
+# each checkpoint kept at the end), pauses.txt (when scripts/pause_runs.sh held the run, if it did; the
+# report subtracts the held time: timing.md), run.log (the run's own log: each iteration's end, UTC, and
+# the training clock then), arithmetic.txt (where the pieces ran on more than one commit:
+# scripts/arithmetic_record.sh, equal digests meaning the same arithmetic); and the report of the one
+# run goes to $REPORT (recipes/report.py: curves, buffer sizes, ES mean vs TD3 actor). A finished run
+# is never rewritten: calling again only copies the records.
 #
 # Usage: scripts/paper_run.sh [run_dir] [extra overrides...]
 #   RUN="recipes/es_td3.py env=walker2d seed=0"  RESULTS=docs/results/runs/paper/walker2d/es_td3_seed0
@@ -47,16 +49,19 @@ if [ ! -f "$DIR/summary.json" ]; then
   "$PYTHON" $RUN hydra.run.dir="$DIR" checkpoint.every_frames=50000 "$@" \
     > "$DIR.piece$piece.log" 2>&1 &
   pid=$!
-  peak=0
+  peak=0 sum=0 count=0 highest=0
+  load_text() { mean=$((sum / (count > 0 ? count : 1))); printf 'load_mean %d.%02d load_max %d.%02d' $((mean / 100)) $((mean % 100)) $((highest / 100)) $((highest % 100)); }
   while kill -0 "$pid" 2> /dev/null; do
     hwm=$(awk '/^VmHWM/ {print int($2 / 1024)}' "/proc/$pid/status" 2> /dev/null)
     if [ "${hwm:-0}" -gt "$peak" ]; then peak=$hwm; fi
-    echo "$record seconds $(( $(date +%s) - t0 )) peak_rss_mib $peak" > "$DIR.piece$piece.alive"
+    load=$(cut -d' ' -f1 /proc/loadavg | tr -d .) load=$((10#$load))  # hundredths
+    sum=$((sum + load)) count=$((count + 1)) highest=$((load > highest ? load : highest))
+    echo "$record seconds $(( $(date +%s) - t0 )) peak_rss_mib $peak $(load_text)" > "$DIR.piece$piece.alive"
     sleep 2
   done
   wait "$pid"
   status=$?
-  echo "$record seconds $(( $(date +%s) - t0 )) peak_rss_mib $peak exit $status" >> "$DIR.pieces" && rm -f "$DIR.piece$piece.alive"
+  echo "$record seconds $(( $(date +%s) - t0 )) peak_rss_mib $peak $(load_text) exit $status" >> "$DIR.pieces" && rm -f "$DIR.piece$piece.alive"
 fi
 [ -f "$DIR/summary.json" ] || exit 1
 mkdir -p "$RESULTS" "$REPORT"
@@ -65,12 +70,10 @@ cp "$DIR/.hydra/config.yaml" "$RESULTS/config.yaml"
 cp "$DIR.pieces" "$RESULTS/pieces.txt"
 [ -f "$DIR.pauses" ] && cp "$DIR.pauses" "$RESULTS/pauses.txt"  # scripts/pause_runs.sh: the run held while a benchmark ran
 du -sb "$DIR"/checkpoints/checkpoint-* | sed "s#$DIR/##" > "$RESULTS/checkpoints.txt"  # bytes of each checkpoint kept at the end
-commits=$(awk '/^piece / && !seen[substr($4, 1, 7)]++ {printf "%s ", substr($4, 1, 7)}' "$DIR.pieces")
 recipe=$(basename "${RUN%% *}")
-if [ "$(echo $commits | wc -w)" -gt 1 ] && ! grep -q "^# scripts/tiny_digest.sh $recipe $commits(" "$RESULTS/arithmetic.txt" 2> /dev/null; then
-  # shellcheck disable=SC2086  # one argument per commit
-  digests=$(PYTHON="$PYTHON" scripts/tiny_digest.sh "$recipe" $commits) \
-    && printf '# scripts/tiny_digest.sh %s %s(%s): commit, rows of the tiny preset'"'"'s metrics.csv, sha256 of the rows without wall-time columns\n%s\n' \
-      "$recipe" "$commits" "$(date -u +%F)" "$digests" > "$RESULTS/arithmetic.txt"
-fi
+[ -f "$DIR/${recipe%.py}.log" ] && cp "$DIR/${recipe%.py}.log" "$RESULTS/run.log"  # the run's own log: each iteration's time
+# shellcheck disable=SC2086  # RUN's words
+env=$(printf '%s\n' $RUN | sed -n 's/^env=//p' | tail -n 1)
+# shellcheck disable=SC2046  # one argument per commit
+PYTHON="$PYTHON" scripts/arithmetic_record.sh "$RESULTS" "$recipe" "${env:--}" $(awk '/^piece / {print $4}' "$DIR.pieces")
 "$PYTHON" recipes/report.py "$RESULTS" --out "$REPORT" > /dev/null

@@ -32,13 +32,17 @@ def test_experiment_set_starts_over_a_run_without_a_checkpoint_records_it_delete
     first = call()
     assert first.returncode == 0, first.stdout + first.stderr
     record = results / "swimmer" / "es_seed0"
-    assert sorted(p.name for p in record.iterdir()) == ["config.yaml", "metrics.csv", "pauses.txt", "summary.json", "timing.txt"]
+    assert sorted(p.name for p in record.iterdir()) == ["config.yaml", "metrics.csv", "pauses.txt", "run.log", "summary.json", "timing.txt"]
     assert (record / "pauses.txt").read_text() == held
     assert json.loads((record / "summary.json").read_text())["env"] == "Swimmer-v5"
     commit = subprocess.run(["git", "rev-parse", "HEAD"], cwd=ROOT, capture_output=True, text=True).stdout.strip()
     started_over, attempt = (record / "timing.txt").read_text().splitlines()  # the killed attempt, marked, then the run
     assert started_over == "swimmer es_seed0: exit 137 after 15 s on commit abc (started over)"
-    assert attempt.startswith("swimmer es_seed0: exit 0 after ") and attempt.endswith(f" s on commit {commit}")
+    words = attempt.split()
+    assert attempt.startswith("swimmer es_seed0: exit 0 after ") and words[words.index("commit") + 1] == commit
+    assert words[words.index("started") + 1].endswith("Z") and float(words[words.index("load_max") + 1]) >= float(words[words.index("load_mean") + 1]) > 0
+    assert "finished:" in (record / "run.log").read_text()  # the run's own log, each line timed
+    assert not (record / "arithmetic.txt").exists()  # its kept attempt ran on one commit
     run_dir = work / "swimmer" / "es_seed0"
     assert (run_dir / "summary.json").exists() and not (run_dir / "checkpoints").exists()
     second = call()
@@ -59,7 +63,8 @@ def test_paper_run_records_each_piece_a_killed_one_too_and_never_reruns_a_finish
     words = pieces[1].split()
     assert words[:4] == ["piece", "1", "commit", commit] and words[-2:] == ["exit", "0"]
     assert int(words[words.index("seconds") + 1]) > 0 and int(words[words.index("peak_rss_mib") + 1]) > 100  # torch alone is more
-    assert sorted(p.name for p in results.iterdir()) == ["checkpoints.txt", "config.yaml", "metrics.csv", "pieces.txt", "summary.json"]
+    assert float(words[words.index("load_max") + 1]) >= float(words[words.index("load_mean") + 1]) > 0
+    assert sorted(p.name for p in results.iterdir()) == ["checkpoints.txt", "config.yaml", "metrics.csv", "pieces.txt", "run.log", "summary.json"]
     sizes = [line.split("\t") for line in (results / "checkpoints.txt").read_text().splitlines()]
     assert sizes and all(int(size) > 1000 and name.startswith("checkpoints/checkpoint-") for size, name in sizes)
     assert (report / "results.md").exists() and (report / "es_vs_td3_Walker2d-v5.png").exists()
@@ -108,3 +113,22 @@ def test_tiny_digest_gives_the_same_digest_for_the_same_code_and_refuses_an_unkn
     assert git("worktree", "list") == trees and not list(tmp_path.iterdir())
     refused = _script("tiny_digest.sh", "es.py", "0000000", TMPDIR=str(tmp_path))
     assert refused.returncode == 2 and refused.stderr.strip() == "0000000: no such commit"
+
+
+def test_arithmetic_record_digests_each_commit_once_and_keeps_a_block_it_has(tmp_path):
+    """Two commits: the tiny preset's digest on each under a header naming them; a second call finds
+    the block and runs nothing; one commit (named twice) writes no file."""
+    git = lambda *args: subprocess.run(["git", *args], cwd=ROOT, capture_output=True, text=True).stdout.strip()
+    head, parent = git("rev-parse", "HEAD"), git("rev-parse", "--verify", "-q", "HEAD~1")
+    if not parent:
+        pytest.skip("no parent commit in this checkout")
+    single = _script("arithmetic_record.sh", str(tmp_path), "es.py", "-", head, head[:7])
+    assert single.returncode == 0 and not (tmp_path / "arithmetic.txt").exists()
+    done = _script("arithmetic_record.sh", str(tmp_path), "es.py", "swimmer", parent, head, TMPDIR=str(tmp_path))
+    assert done.returncode == 0, done.stdout + done.stderr
+    header, *lines = (tmp_path / "arithmetic.txt").read_text().splitlines()
+    assert header.startswith(f"# scripts/tiny_digest.sh es.py {parent[:7]} {head[:7]} (")
+    assert [line.split()[:3] for line in lines] == [[parent[:7], "2", "rows"], [head[:7], "2", "rows"]]  # es.py takes no gradient steps: one block
+    assert all(len(line.split()[3]) == 64 for line in lines)
+    again = _script("arithmetic_record.sh", str(tmp_path), "es.py", "swimmer", parent, head, TMPDIR=str(tmp_path))
+    assert again.returncode == 0 and (tmp_path / "arithmetic.txt").read_text().splitlines() == [header, *lines]

@@ -56,6 +56,7 @@ from torchrl_esrl.report import (  # noqa: E402
     normalised_scores,
     pairwise_table,
     permutation_test,
+    smallest_called_shift,
 )
 from torchrl_esrl.run.algorithm_info import AlgorithmInfo, discover, load_recipe  # noqa: E402
 
@@ -98,6 +99,43 @@ def test_holm_on_known_p_values():
     assert holm([0.01, 0.04, 0.03, 0.005]) == pytest.approx([0.03, 0.06, 0.06, 0.02])
     assert holm([0.5, 0.6]) == pytest.approx([1.0, 1.0])  # capped at 1
     assert holm([0.2]) == pytest.approx([0.2])  # one test: unchanged
+
+
+def test_smallest_called_shift_of_four_against_four_is_the_gap_to_full_separation():
+    """4 vs 4, one test: C(8, 4) = 70 relabelings, so only p = 2/70 is below 0.05, and that needs
+    every run of one row above every run of the other: x + d above max(y) (d > 7 - 1 = 6) or below
+    min(y) (d < 0 - 4 = -4). The smaller shift is -4."""
+    x, y = [1.0, 2.0, 3.0, 4.0], [0.0, 5.0, 6.0, 7.0]
+    assert smallest_called_shift(x, y) == pytest.approx(-4.0)
+    assert smallest_called_shift([10.0, 11.0, 12.0, 13.0], y) == 0.0  # separated already: called as it is
+    assert math.isinf(smallest_called_shift([1.0, 2.0, 3.0], [4.0, 5.0, 6.0]))  # 3 vs 3: p >= 2/20, never called
+    assert math.isnan(smallest_called_shift([1.0], y))  # one run: no test
+
+
+def test_smallest_called_shift_follows_holms_step_down():
+    """5 vs 5, 6 pairs: alone among p = 0.5, the pair needs p = 2/252 (x + d below min(y): d < 3 - 5 = -2);
+    after three pairs at 2/252, Holm calls 4/252 at 3 x 4/252 = 0.048, so one other relabeling may tie or
+    pass it: the second-smallest single swap, min(4 - 5, 3 - 4) = -1. With 15 pairs no p can be called."""
+    x, y = [1.0, 2.0, 3.0, 4.0, 5.0], [3.0, 4.0, 5.0, 6.0, 7.0]
+    assert smallest_called_shift(x, y, [0.5] * 5) == pytest.approx(-2.0)
+    assert smallest_called_shift(x, y, [2 / 252] * 3 + [1.0, 1.0]) == pytest.approx(-1.0)
+    assert math.isinf(smallest_called_shift(x, y, [0.5] * 14))
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_smallest_called_shift_is_where_the_corrected_permutation_test_starts_calling(seed):
+    rng = np.random.default_rng(seed)
+    x, y = rng.normal(0, 1, 5), rng.normal(0.5, 1.5, 5)
+    others = [0.01, 0.3] if seed % 2 else [2 / 252, 2 / 252, 2 / 252, 0.9]
+    shift = smallest_called_shift(x, y, others)
+    assert 0 < abs(shift) < 20
+
+    def called(d):
+        return holm([permutation_test(x + d, y)[0], *others])[0] < 0.05
+
+    step = 1e-6 * (1 + abs(shift))
+    assert called(shift + math.copysign(step, shift)) and not called(shift - math.copysign(step, shift))
+    assert not called(-shift + math.copysign(step, shift))  # the other direction needs at least as large a shift
 
 
 def run_record(env, algorithm, seed, final, initial=0.0):

@@ -1,6 +1,7 @@
 """The report over run directories (``recipes/report.py``): Table 1 of the paper per row, the
 statistics of :mod:`~torchrl_esrl.report.statistics`, what the overwrites let the records say about
-the buffers (:mod:`~torchrl_esrl.report.findings`), the figures, and the page's first table, the
+the buffers (:mod:`~torchrl_esrl.report.findings`), the runs' time net of holds
+(:mod:`~torchrl_esrl.report.timing`), the figures, and the page's first table, the
 paper's Table 1 beside our records (:mod:`~torchrl_esrl.report.overview`). What it knows of the
 algorithms (labels, order, the rows it compares against) is one
 :class:`~torchrl_esrl.report.records.Algorithms`, built by ``recipes/report.py``."""
@@ -10,14 +11,14 @@ from pathlib import Path
 
 from torchrl_esrl.report.figures import (MAX_LINES, curve_panels, plot_aggregate, plot_buffer_sizes, plot_es_vs_td3, plot_hard_vs_soft,  # noqa: F401
                                          plot_learning_curves, plot_ratio_sweep)
-from torchrl_esrl.report.findings import (overwrite_table, summary_table, write_iterations, write_overwrite_table, write_summary_table,  # noqa: F401
-                                          write_timing)
+from torchrl_esrl.report.findings import overwrite_table, summary_table, write_iterations, write_overwrite_table, write_summary_table  # noqa: F401
 from torchrl_esrl.report.overview import overview_algorithms, overview_rows, read_paper_table, read_started, write_overview  # noqa: F401
 from torchrl_esrl.report.records import Algorithms, find_runs, ratio_text, table_groups  # noqa: F401
 from torchrl_esrl.report.statistics import (holm, interquartile_mean, iqm_confidence_interval, mean_band, paired_comparison,  # noqa: F401
-                                            permutation_test, probability_of_improvement)
+                                            permutation_test, probability_of_improvement, smallest_called_shift)
 from torchrl_esrl.report.tables import (aggregate_table, improvement_table, normalisation, normalised_scores, pairwise_table, results_table,  # noqa: F401
                                         write_aggregate_table, write_improvement_table, write_pairwise_table, write_runs_table, write_table)
+from torchrl_esrl.report.timing import run_time, write_timing  # noqa: F401
 
 
 def make_report(paths, out_dir, algorithms: Algorithms) -> dict:

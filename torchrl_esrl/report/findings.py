@@ -9,29 +9,32 @@
   never overwritten (then it is a finding about ES alone, not about the buffers).
 - ``iterations``: every iteration of each run that is the only run of its row (a single run is
   shown as a run, never as a statistic).
-- ``timing``: the seconds each run's command took (``timing.txt``, ``pieces.txt``).
 """
 from __future__ import annotations
 
 import math
-import re
 from collections import defaultdict
 from pathlib import Path
 
-import numpy as np
-
 from torchrl_esrl.report.records import Algorithms, ci_text, frames_text, independent_rows, ratio_text, records_overwrites, table_groups, write_csv
 from torchrl_esrl.report.statistics import SIGNIFICANCE, paired_comparison
+from torchrl_esrl.report.timing import clock_text, held_text, run_time
 
-OVERWRITE_COLUMNS = ("env", "algorithm", "ratio", "runs", "overwritten_runs", "never_overwritten_seeds", "same_as_es_seeds",
+OVERWRITE_COLUMNS = ("env", "algorithm", "ratio", "runs", "overwritten_runs", "overwrites_by_seed", "never_overwritten_seeds", "same_as_es_seeds",
                      "es_above_td3_actor", "es_equal_td3_actor", "es_below_td3_actor", "paired_probability")
+
+
+def overwrite_count(summary: dict, metrics: list[dict]) -> int:
+    """How many times the TD3 actor replaced (or, soft, moved) the ES mean in the run: the summary's
+    count, else the iterations ``metrics.csv`` marks ``overwritten``."""
+    if summary.get("overwrites") is not None:
+        return int(summary["overwrites"])
+    return sum(row.get("overwritten") is True for row in metrics)
 
 
 def ever_overwritten(summary: dict, metrics: list[dict]) -> bool:
     """Whether the TD3 actor replaced (or, soft, moved) the ES mean at least once in the run."""
-    if summary.get("overwrites") is not None:
-        return summary["overwrites"] > 0
-    return any(row.get("overwritten") is True for row in metrics)
+    return overwrite_count(summary, metrics) > 0
 
 
 def overwrite_table(runs: list[dict], algorithms: Algorithms) -> list[dict]:
@@ -54,6 +57,7 @@ def overwrite_table(runs: list[dict], algorithms: Algorithms) -> list[dict]:
         with_actor = [r["summary"] for r in group if "final_td3_actor_return" in r["summary"]]
         paired = paired_comparison([s["final_return"] for s in with_actor], [s["final_td3_actor_return"] for s in with_actor])
         rows.append({"env": env, "algorithm": algorithm, "ratio": ratio, "runs": len(group), "overwritten_runs": len(group) - len(never),
+                     "overwrites_by_seed": " ".join(f"{r['summary']['seed']}:{overwrite_count(r['summary'], r['metrics'])}" for r in group),
                      "never_overwritten_seeds": " ".join(map(str, never)), "same_as_es_seeds": " ".join(map(str, same)),
                      "es_above_td3_actor": paired["above"], "es_equal_td3_actor": paired["ties"], "es_below_td3_actor": paired["below"],
                      "paired_probability": paired["probability"], "has_es_row": any(key[0] == env for key in es_final)})
@@ -86,11 +90,11 @@ def write_overwrite_table(rows: list[dict], out_dir: Path, algorithms: Algorithm
     csv_path, md_path = out_dir / "overwrites.csv", out_dir / "overwrites.md"
     write_csv(csv_path, OVERWRITE_COLUMNS, [{key: r[key] for key in OVERWRITE_COLUMNS} for r in rows])
     es_alone = algorithms.label(algorithms.es_alone or "")
-    lines = [f"| env | row | runs | ES mean overwritten (runs) | never overwritten (seeds) | of these, final return = {es_alone}'s (same seed) |"
-             " ES mean vs its own TD3 actor, by run: above / equal / below |", "|---|---|---:|---:|---|---|---|"]
+    lines = [f"| env | row | runs | ES mean overwritten (runs) | overwrites per run (seed:count) | never overwritten (seeds) | of these, final return = {es_alone}'s (same seed) |"
+             " ES mean vs its own TD3 actor, by run: above / equal / below |", "|---|---|---:|---:|---|---|---|---|"]
     for r in rows:
         same = (r["same_as_es_seeds"] or "none") if r["has_es_row"] else f"no {es_alone} row"
-        lines.append(f"| {r['env']} | {algorithms.label(r['algorithm'], r['ratio'])} | {r['runs']} | {r['overwritten_runs']} | {r['never_overwritten_seeds'] or '-'} | "
+        lines.append(f"| {r['env']} | {algorithms.label(r['algorithm'], r['ratio'])} | {r['runs']} | {r['overwritten_runs']} | {r['overwrites_by_seed']} | {r['never_overwritten_seeds'] or '-'} | "
                      f"{same if r['never_overwritten_seeds'] else '-'} | {r['es_above_td3_actor']} / {r['es_equal_td3_actor']} / {r['es_below_td3_actor']} |")
     lines += [""] + [f"- {overwrite_sentence(r, algorithms)}" for r in rows]
     lines += [
@@ -159,7 +163,7 @@ def write_summary_table(rows: list[dict], out_dir: Path, algorithms: Algorithms)
         f"Final return of the returned policy ({algorithms.returned_text(key[0] for key in keys)}), IQM over {' or '.join(map(str, runs))} runs with its 95% bootstrap CI"
         " (results.md; a row of one run: its final return)" + ("; overwritten in k/n: runs whose ES mean the TD3 actor replaced at least once (overwrites.md)" if any(r["overwrites_counted"] for r in rows) else "") + ". Differences:",
         f"two-sided permutation test of the means with Holm's correction across the task's tested pairs ({families}; pairwise.md).",
-        "No difference called means none shown, not that the rows are equal.",
+        "No difference called means none shown, not that the rows are equal: pairwise.md gives the smallest shift of a row each test would call.",
     ]
     path = out_dir / "summary.md"
     path.write_text("\n".join(lines) + "\n")
@@ -212,47 +216,13 @@ def write_iterations(runs: list[dict], out_dir: Path, algorithms: Algorithms) ->
                       f"{row['wall_time_s']:.0f}", f"{row['wall_time_s'] - previous['wall_time_s']:.0f}"]
             cells += [" / ".join(frames_text(row[k]) for k in ("good_size", "bad_size", "noisy_size"))] if has_buffers else []
             lines.append("| " + " | ".join(cells) + " |")
+        time = run_time(run)
+        if time.holds or time.open_holds:
+            lines += ["", f"The run was held {held_text(time)} (`pauses.txt`), on the clock above where the work around a hold was kept; {clock_text(time)} (`timing.md`)."]
         lines.append("")
     lines += ["Per iteration (`metrics.csv`): the returned policy and the TD3 actor evaluated on the iteration's episodes",
               "(the final return is a fresh evaluation); TD3 updates so far; ES frames of the iteration's ES phase; the training",
               "clock (`wall_time_s`, carried across a resume) at the iteration's end; buffer items at its end."]
     path = out_dir / "iterations.md"
     path.write_text("\n".join(lines) + "\n")
-    return path
-
-
-TIMING = re.compile(r"exit (\S+) after (\d+) s")
-PIECE = re.compile(r"piece (\d+) commit (\S+) start (\S+) seconds (\d+) peak_rss_mib (\d+) (.+)")
-
-
-def write_timing(runs: list[dict], out_dir: Path, algorithms: Algorithms) -> Path | None:
-    """``timing.md``: the seconds of each run's command, summed over its attempts (``timing.txt``
-    of the experiment scripts; ``pieces.txt`` of ``scripts/paper_run.sh``, with each piece's peak
-    resident memory), per row: median, smallest, largest, total."""
-    per_row: dict[tuple[str, str], list[float]] = defaultdict(list)
-    pieces = []
-    for run in runs:
-        s = run["summary"]
-        key = (s["env"], algorithms.label(s["algorithm"], ratio_text(s)))
-        if (run["dir"] / "timing.txt").exists():
-            attempts = TIMING.findall((run["dir"] / "timing.txt").read_text())
-            per_row[key].append(sum(int(seconds) for _, seconds in attempts))
-        if (run["dir"] / "pieces.txt").exists():
-            found = [PIECE.match(line) for line in (run["dir"] / "pieces.txt").read_text().splitlines()]
-            pieces.append((key, s["seed"], [m.groups() for m in found if m]))
-    if not per_row and not pieces:
-        return None
-    lines = []
-    if per_row:
-        total = sum(sum(v) for v in per_row.values())
-        lines += ["| env | row | runs | median (s) | smallest (s) | largest (s) | total (s) |", "|---|---|---:|---:|---:|---:|---:|"]
-        for (env, name), seconds in sorted(per_row.items()):
-            lines.append(f"| {env} | {name} | {len(seconds)} | {np.median(seconds):.0f} | {min(seconds):.0f} | {max(seconds):.0f} | {sum(seconds):.0f} |")
-        lines += ["", f"{sum(map(len, per_row.values()))} runs, {total:,.0f} s of commands in all (`timing.txt`: each attempt's command seconds, summed per run).", ""]
-    for (env, name), seed, found in pieces:
-        lines += [f"{env}, {name}, seed {seed} (`pieces.txt`):", "", "| piece | commit | start | seconds | peak resident memory (MiB) | ending |", "|---:|---|---|---:|---:|---|"]
-        lines += [f"| {p} | {commit[:7]} | {start} | {seconds} | {rss} | {end} |" for p, commit, start, seconds, rss, end in found]
-        lines += ["", f"{sum(int(f[3]) for f in found):,} s in {len(found)} piece{'s' if len(found) != 1 else ''}.", ""]
-    path = out_dir / "timing.md"
-    path.write_text("\n".join(lines))
     return path

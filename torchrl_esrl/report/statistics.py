@@ -1,6 +1,7 @@
 """The report's statistics over runs: the interquartile mean and the probability of improvement
 (Agarwal et al. 2021, ``rliable``), their percentile-bootstrap CIs, the permutation test of a
-difference of means (``scipy``), Holm's correction, and the paired count of a run's two policies.
+difference of means (``scipy``), Holm's correction, the smallest shift that corrected test would
+call, and the paired count of a run's two policies.
 
 Bootstrap CIs are percentile intervals. They are exact where the resamples are few: every one of
 the n^n resamples of a row of n runs (3,125 for 5 runs; n^n x m^m pairs of resamples for the
@@ -16,6 +17,7 @@ resample in Python, minutes for 50,000 resamples.
 """
 from __future__ import annotations
 
+import itertools
 import math
 import warnings
 
@@ -175,6 +177,45 @@ def permutation_test(x, y, seed: int = 0) -> tuple[float, int, bool]:
     result = stats.permutation_test((x, y), _mean_difference, permutation_type="independent", vectorized=True,
                                     n_resamples=np.inf if exact else 100_000, alternative="two-sided", rng=np.random.default_rng(seed))
     return float(result.pvalue), relabelings if exact else 100_000, exact
+
+
+def smallest_called_shift(x, y, others=(), alpha: float = SIGNIFICANCE) -> float:
+    """What the exact test of :func:`permutation_test` could have called, given the runs: the
+    smallest shift d (signed, smallest in size) such that adding d to every run of ``x`` makes the
+    test, Holm-corrected together with the family's other p-values ``others`` as they are, call
+    the difference (corrected p < ``alpha``). Every shift beyond d (further from 0, same sign) is
+    called too; d itself may not be (the boundary is where one relabeling ties the observed
+    statistic). 0 where the difference is called as it is; inf where no shift can be (the
+    smallest possible p, corrected, is not below ``alpha``); NaN where the test is not exact or
+    not run (a row of one run).
+
+    Shifting x by d moves each relabeling's difference of means by d (n_x_in_A / n - n_x_in_B / m),
+    the observed one by d: the one-sided counts change only where a relabeling's statistic crosses
+    the observed one, at d_i = (T_i - T_obs) / (1 - c_i). scipy's two-sided p is 2 min(G, L) / N
+    (G, L: relabelings at or above, at or below the observed); the corrected test calls when
+    min(G, L) <= k, the largest k whose p = 2k / N Holm calls. G <= k beyond the k-th largest d_i,
+    L <= k below the k-th smallest."""
+    x, y = np.asarray(x, dtype=float).ravel(), np.asarray(y, dtype=float).ravel()
+    n, m = len(x), len(y)
+    total = math.comb(n + m, n)
+    if n < 2 or m < 2 or total > EXACT_PERMUTATIONS:
+        return math.nan
+    others = np.asarray(others, dtype=float).ravel()
+    called = [k for k in range(1, total // 2 + 1) if holm(np.r_[2 * k / total, others])[0] < alpha]
+    if not called:
+        return math.inf
+    k = max(called)  # Holm's adjusted p grows with the raw p: every count up to k is called
+    pooled = np.r_[x, y]
+    groups = np.array(list(itertools.combinations(range(n + m), n)))  # group A of each relabeling: the identity first
+    in_a = np.zeros((total, n + m), dtype=bool)
+    np.put_along_axis(in_a, groups, True, axis=1)
+    statistic = (in_a @ pooled) / n - (~in_a @ pooled) / m
+    slope = in_a[:, :n].sum(axis=1) / n - (~in_a[:, :n]).sum(axis=1) / m  # 1 for the identity only
+    crossings = np.sort((statistic[1:] - statistic[0]) / (1 - slope[1:]))
+    up, down = crossings[-k] if k <= len(crossings) else -math.inf, crossings[k - 1] if k <= len(crossings) else math.inf
+    if up < 0 or down > 0:
+        return 0.0
+    return float(up) if up <= -down else float(down)
 
 
 def holm(pvalues) -> np.ndarray:

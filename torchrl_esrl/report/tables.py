@@ -27,7 +27,8 @@ import numpy as np
 from torchrl_esrl.report.records import (PAPER_RATIO, TD3_ACTOR_SUFFIX, Algorithms, ci_text, independent_rows, number_text, ratio_text,
                                          table_groups, write_csv)
 from torchrl_esrl.report.statistics import (BOOTSTRAP_DRAWS, SIGNIFICANCE, _rliable, aggregate_iqm, aggregate_probability_of_improvement, bootstrap_method, holm, interquartile_mean, iqm_confidence_interval,
-                                            permutation_test, probability_of_improvement, stratified_interval)
+                                            permutation_test, probability_of_improvement, smallest_called_shift, stratified_interval)
+from torchrl_esrl.report.timing import net_minutes_text, run_time
 
 TABLE_COLUMNS = ("env", "algorithm", "ratio", "runs", "td3_frames", "es_frames", "mean", "std", "median", "iqm", "iqm_ci_low", "iqm_ci_high")
 
@@ -35,6 +36,12 @@ TABLE_COLUMNS = ("env", "algorithm", "ratio", "runs", "td3_frames", "es_frames",
 def _methods(sizes) -> str:
     text = "; ".join(f"{n} runs: {bootstrap_method(n)}" for n in sorted(set(sizes)) if n > 1)
     return text or "no row has two runs: no CI"
+
+
+def mean_count(counts) -> int | float:
+    """The mean of counts over runs: whole where it is, else to one decimal (never truncated)."""
+    mean = float(np.mean(counts))
+    return int(mean) if mean.is_integer() else round(mean, 1)
 
 
 def results_table(runs: list[dict]) -> list[dict]:
@@ -50,8 +57,8 @@ def results_table(runs: list[dict]) -> list[dict]:
                 "algorithm": algorithm,
                 "ratio": ratio,
                 "runs": len(finals),
-                "td3_frames": int(np.mean([s.get("td3_frames", 0) for s in summaries])),
-                "es_frames": int(np.mean([s.get("es_frames", 0) for s in summaries])),
+                "td3_frames": mean_count([s.get("td3_frames", 0) for s in summaries]),
+                "es_frames": mean_count([s.get("es_frames", 0) for s in summaries]),
                 "mean": float(finals.mean()),
                 "std": float(finals.std(ddof=1)) if len(finals) > 1 else math.nan,  # one run has no spread
                 "median": float(np.median(finals)),
@@ -138,14 +145,16 @@ def write_improvement_table(rows: list[dict], out_dir: Path, algorithms: Algorit
 
 
 PAIRWISE_COLUMNS = ("env", "algorithm", "ratio", "other_algorithm", "other_ratio", "runs", "other_runs", "mean_difference",
-                    "relabelings", "exact", "p_value", "p_holm", "difference")
+                    "relabelings", "exact", "p_value", "p_holm", "difference", "called_shift", "called_difference")
 
 
 def pairwise_table(runs: list[dict], algorithms: Algorithms) -> list[dict]:
     """Per env, every pair of rows (TD3-actor rows left out: same runs as their row): the
     permutation test of :func:`permutation_test` on the final returns, and Holm's correction
     across that env's tested pairs (a row of one run is not tested: NaN). ``difference`` is True
-    only when the corrected p < ``SIGNIFICANCE``."""
+    only when the corrected p < ``SIGNIFICANCE``. ``called_shift``: :func:`smallest_called_shift`
+    of the row against the other row, the family's other p-values as they are; ``called_difference``:
+    the difference of means at that shift."""
     groups = table_groups(runs)
     rows = []
     for env in sorted({key[0] for key in groups}):
@@ -158,13 +167,15 @@ def pairwise_table(runs: list[dict], algorithms: Algorithms) -> list[dict]:
                 p_value, relabelings, exact = permutation_test(x, y)
                 env_rows.append({"env": env, "algorithm": first[0], "ratio": first[1], "other_algorithm": second[0], "other_ratio": second[1],
                                  "runs": len(x), "other_runs": len(y), "mean_difference": float(np.mean(x) - np.mean(y)),
-                                 "relabelings": relabelings, "exact": exact, "p_value": p_value})
+                                 "relabelings": relabelings, "exact": exact, "p_value": p_value, "samples": (x, y)})
         tested = [r for r in env_rows if not math.isnan(r["p_value"])]  # Holm's family: the pairs that were tested
-        for row, adjusted in zip(tested, holm([r["p_value"] for r in tested]) if tested else []):
-            row.update(p_holm=float(adjusted), difference=bool(adjusted < SIGNIFICANCE))
+        for i, (row, adjusted) in enumerate(zip(tested, holm([r["p_value"] for r in tested]) if tested else [])):
+            shift = smallest_called_shift(*row["samples"], [r["p_value"] for j, r in enumerate(tested) if j != i]) if row["exact"] else math.nan
+            row.update(p_holm=float(adjusted), difference=bool(adjusted < SIGNIFICANCE), called_shift=shift, called_difference=row["mean_difference"] + shift)
         for row in env_rows:
-            row.setdefault("p_holm", math.nan)
-            row.setdefault("difference", False)
+            del row["samples"]
+            for key, value in (("p_holm", math.nan), ("difference", False), ("called_shift", math.nan), ("called_difference", math.nan)):
+                row.setdefault(key, value)
         rows += env_rows
     return rows
 
@@ -173,14 +184,15 @@ def write_pairwise_table(rows: list[dict], out_dir: Path, algorithms: Algorithms
     """``pairwise.csv`` and ``pairwise.md``: the permutation tests of :func:`pairwise_table`."""
     csv_path, md_path = out_dir / "pairwise.csv", out_dir / "pairwise.md"
     write_csv(csv_path, PAIRWISE_COLUMNS, rows)
-    lines = ["| env | row | other row | runs | mean difference | p (permutation) | p (Holm) | difference? |", "|---|---|---|---|---:|---:|---:|---|"]
+    lines = ["| env | row | other row | runs | mean difference | p (permutation) | p (Holm) | difference? | smallest shift of the row called (mean difference then) |",
+             "|---|---|---|---|---:|---:|---:|---|---:|"]
     for r in rows:
         if math.isnan(r["p_value"]):
             p_text, holm_text = "not tested (one run)", "-"
         else:
             p_text, holm_text = f"{r['p_value']:.4f}" + ("" if r["exact"] else " (random relabelings)"), f"{r['p_holm']:.4f}"
         lines.append(f"| {r['env']} | {algorithms.label(r['algorithm'], r['ratio'])} | {algorithms.label(r['other_algorithm'], r['other_ratio'])} | {r['runs']} / {r['other_runs']} | "
-                     f"{r['mean_difference']:.1f} | {p_text} | {holm_text} | {'**yes**' if r['difference'] else 'no'} |")
+                     f"{r['mean_difference']:.1f} | {p_text} | {holm_text} | {'**yes**' if r['difference'] else 'no'} | {shift_text(r['called_shift'], r['called_difference'])} |")
     families = defaultdict(int)
     for r in rows:
         families[r["env"]] += not math.isnan(r["p_value"])
@@ -191,11 +203,23 @@ def write_pairwise_table(rows: list[dict], out_dir: Path, algorithms: Algorithms
         "possible p = 2/252 = 0.0079). Holm's correction across the tested pairs of one task ("
         + ", ".join(f"{env}: {count}" for env, count in sorted(families.items())) + " pairs).",
         f"A difference is called one only when the Holm-corrected p is below {SIGNIFICANCE}.",
+        "Smallest shift called: the smallest d (in size) such that adding d to every run of the row would make this exact test,",
+        "Holm-corrected with the task's other pairs at their p as they are, call the difference; every larger shift in that",
+        "direction is called too (statistics.smallest_called_shift). It is what these runs' spread lets the design detect, not an",
+        "estimate of anything; 0: called as it is; none: no shift can be called (the smallest possible p, corrected, is not below "
+        f"{SIGNIFICANCE}).",
     ]
     md_path.write_text("\n".join(lines) + "\n")
     return csv_path, md_path
 
 
+def shift_text(shift: float, difference: float) -> str:
+    """A cell of :func:`write_pairwise_table`'s last column."""
+    if math.isnan(shift):
+        return "-"
+    if math.isinf(shift):
+        return "none"
+    return "0 (called)" if shift == 0 else f"{shift:+.1f} ({difference:.1f})"
 
 
 AGGREGATE_COLUMNS = ("algorithm", "ratio", "tasks", "runs_per_task", "iqm", "iqm_ci_low", "iqm_ci_high", "probability", "probability_ci_low", "probability_ci_high")
@@ -293,7 +317,7 @@ def write_aggregate_table(rows: list[dict], runs: list[dict], out_dir: Path, alg
 
 
 RUN_COLUMNS = ("env", "algorithm", "ratio", "seed", "final_return", "final_td3_actor_return", "overwrites", "td3_frames", "es_frames",
-               "td3_updates", "first_td3_update", "wall_time_s", "dir")
+               "td3_updates", "first_td3_update", "wall_time_s", "held_s", "wall_time_net_s", "wall_time_net_low_s", "dir")
 
 
 def first_td3_update(metrics: list[dict]) -> int | str:
@@ -306,31 +330,39 @@ def first_td3_update(metrics: list[dict]) -> int | str:
 
 
 def write_runs_table(runs: list[dict], out_dir: Path, algorithms: Algorithms) -> tuple[Path, Path]:
-    """``runs.csv`` and ``runs.md``: one row per run (seed), the numbers behind each table row."""
+    """``runs.csv`` and ``runs.md``: one row per run (seed), the numbers behind each table row; its
+    training clock net of the holds placed in it (``wall_time_net_s``; less every hold:
+    ``wall_time_net_low_s``) with the held seconds beside (:func:`~torchrl_esrl.report.timing.run_time`)."""
     rows = []
     for run in runs:
-        s = run["summary"]
+        s, time = run["summary"], run_time(run)
+        low, high = time.clock_net or ("", "")
         rows.append({**{key: s.get(key, "") for key in RUN_COLUMNS}, "ratio": ratio_text(s), "dir": str(run["dir"]),
-                     "first_td3_update": first_td3_update(run["metrics"])})
+                     "first_td3_update": first_td3_update(run["metrics"]), "held_s": time.held, "wall_time_net_s": high, "wall_time_net_low_s": low,
+                     "net_minutes": net_minutes_text(time)})
     rows.sort(key=lambda r: (r["env"], r["algorithm"], r["ratio"], r["seed"]))
     csv_path, md_path = out_dir / "runs.csv", out_dir / "runs.md"
-    write_csv(csv_path, RUN_COLUMNS, rows)
+    write_csv(csv_path, RUN_COLUMNS, [{key: r[key] for key in RUN_COLUMNS} for r in rows])
 
     def number(value, digits=1):
         return f"{value:.{digits}f}" if isinstance(value, (int, float)) else "-"
 
     lines = [
-        "| env | algorithm | seed | final return | TD3 actor | overwrites | TD3 frames | ES frames | TD3 updates | first TD3 update (iteration) | wall time (min) |",
-        "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
+        "| env | algorithm | seed | final return | TD3 actor | overwrites | TD3 frames | ES frames | TD3 updates | first TD3 update (iteration) "
+        "| training clock net of holds (min) | held (min) |",
+        "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
     ]
     for r in rows:
         overwrites = r["overwrites"] if r["overwrites"] != "" else "-"
-        wall = number(r["wall_time_s"] / 60 if isinstance(r["wall_time_s"], (int, float)) else None)
         lines.append(
             f"| {r['env']} | {algorithms.label(r['algorithm'], r['ratio'])} | {r['seed']} | {number(r['final_return'])} | "
             f"{number(r['final_td3_actor_return'])} | {overwrites} | {r['td3_frames']} | {r['es_frames']} | "
-            f"{r['td3_updates'] if r['td3_updates'] != '' else '-'} | {r['first_td3_update'] or '-'} | {wall} |"
+            f"{r['td3_updates'] if r['td3_updates'] != '' else '-'} | {r['first_td3_update'] or '-'} | {r['net_minutes']} | {number(r['held_s'] / 60) if r['held_s'] else '-'} |"
         )
+    held = [r for r in rows if r["held_s"]]
+    if held:
+        lines += ["", f"Training clock: `summary.json`'s `wall_time_s` less the holds of `pauses.txt` placed in it; a range where a hold fell where the records "
+                      f"cannot say whether the clock counted it (timing.md). {len(held)} of {len(rows)} runs were held."]
     md_path.write_text("\n".join(lines) + "\n")
     return csv_path, md_path
 
