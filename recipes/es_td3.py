@@ -2,6 +2,7 @@
 
     python recipes/es_td3.py env=walker2d                  # the paper's configuration
     python recipes/es_td3.py experiment=quick              # a short real run
+    python recipes/es_td3.py experiment=demo learner=sac   # SAC (or DDPG) in TD3's place
     python recipes/es_td3.py -m experiment=quick 'buffer.ratio=[0.5,0.2,0.3],[0.34,0.33,0.33]'
 
 Each run writes metrics.csv, summary.json, the TorchRL logger's files and the final actors into
@@ -24,17 +25,25 @@ from torchrl_esrl.data.threshold import make_threshold
 from torchrl_esrl.envs import make_train_env
 from torchrl_esrl.errors import check_finite
 from torchrl_esrl.es.openes import es_holdings, make_es
-from torchrl_esrl.modules.networks import flat_parameters, make_actor_critic
-from torchrl_esrl.objectives.td3 import make_td3, td3_holdings
+from torchrl_esrl.modules.networks import flat_parameters
+from torchrl_esrl.objectives.learners import LEARNERS, LearnerConfig, learner_holdings, make_learner
 from torchrl_esrl.run.algorithm_info import AlgorithmInfo
 from torchrl_esrl.run.lifecycle import Run, recipe_main
 
-# One name per variant (buffer.mode, overwrite.mode): runs of different variants are different rows.
+# One name per variant (learner, buffer.mode, overwrite.mode): runs of different variants are different rows.
 ALGORITHMS = (
     AlgorithmInfo("es_td3_buffers", "ES-TD3Buffers", returned="ES mean", rank=0),
     AlgorithmInfo("es_td3_buffers_soft", "ES-TD3Buffers (soft overwrite)", returned="ES mean", rank=1),
     AlgorithmInfo("es_td3_shared", "ES-TD3 (one shared buffer)", returned="ES mean", rank=2),
     AlgorithmInfo("es_td3_shared_soft", "ES-TD3 (one shared buffer, soft overwrite)", returned="ES mean", rank=3),
+    AlgorithmInfo("es_ddpg_buffers", "ES-DDPGBuffers", returned="ES mean", rank=10),
+    AlgorithmInfo("es_ddpg_buffers_soft", "ES-DDPGBuffers (soft overwrite)", returned="ES mean", rank=11),
+    AlgorithmInfo("es_ddpg_shared", "ES-DDPG (one shared buffer)", returned="ES mean", rank=12),
+    AlgorithmInfo("es_ddpg_shared_soft", "ES-DDPG (one shared buffer, soft overwrite)", returned="ES mean", rank=13),
+    AlgorithmInfo("es_sac_buffers", "ES-SACBuffers", returned="ES mean", rank=20),
+    AlgorithmInfo("es_sac_buffers_soft", "ES-SACBuffers (soft overwrite)", returned="ES mean", rank=21),
+    AlgorithmInfo("es_sac_shared", "ES-SAC (one shared buffer)", returned="ES mean", rank=22),
+    AlgorithmInfo("es_sac_shared_soft", "ES-SAC (one shared buffer, soft overwrite)", returned="ES mean", rank=23),
 )
 
 
@@ -43,8 +52,8 @@ def train(cfg: DictConfig, run: Run) -> dict:
     ``buffer.mode=shared`` is the single-buffer ablation: ES and TD3 transitions in one buffer."""
     # Initialise: TD3 actor pi, critics Q0, Q1 and targets; ES mean mu; MultiBuffer; best = -inf.
     env = make_train_env(cfg)
-    actor, critic = make_actor_critic(cfg, env)
-    td3 = make_td3(cfg, actor, critic, env.action_spec)
+    td3 = make_learner(cfg, env)  # TD3, or learner=ddpg|sac in its place
+    actor = td3.actor  # its deterministic policy pi: what ES searches over (SAC: the mean action)
     collector, frame_batches = make_frame_batches(cfg, env, td3)
     es, es_collector = make_es(cfg, actor), make_es_collector(cfg, actor)
     es_phase = make_es_phase(cfg, es, es_collector, make_multibuffer(cfg), make_threshold(cfg), on_generation=run.on_es_generation)
@@ -52,7 +61,7 @@ def train(cfg: DictConfig, run: Run) -> dict:
     overwrite = make_overwrite_rule(cfg)
     run.start(actor, td3=td3, exploration=td3.exploration_policy, td3_env=TD3EnvState(collector), buffer=buffer, es=es, es_collector=es_collector, threshold=threshold, overwrite=overwrite)
 
-    for iteration in run.iterations("ES-TD3Buffers"):
+    for iteration in run.iterations(algorithm(cfg).label):
         es_phase.start()  # es.schedule=async: this iteration's ES generations run alongside the TD3 phase
         # TD3: M frames of noisy actions into the noisy buffer, learning once all buffers hold K;
         # TD3 episodes raise the best return too.
@@ -77,6 +86,7 @@ def train(cfg: DictConfig, run: Run) -> dict:
             td3_updates=td3.updates, **decision.metrics(), **threshold.metrics(),
             **{f"{name}_size": size for name, size in buffer.sizes().items()},
             **generations.metrics(), critic_loss=td3_stats["critic_loss"], actor_loss=td3_stats["actor_loss"], buffer_mode=cfg.buffer.mode,
+            **td3.metrics(),  # the learner's own (SAC: its entropy temperature)
         )
     collector.shutdown()
     es_phase.close()
@@ -94,16 +104,16 @@ def train(cfg: DictConfig, run: Run) -> dict:
 
 
 def algorithm(cfg: DictConfig) -> AlgorithmInfo:
-    """The variant ``cfg`` runs: the buffer mode, then the overwrite mode."""
-    return ALGORITHMS[2 * (cfg.buffer.mode == "shared") + (cfg.overwrite.mode == "soft")]
+    """The variant ``cfg`` runs: the learner, the buffer mode, then the overwrite mode."""
+    return ALGORITHMS[4 * list(LEARNERS).index(cfg.learner.name) + 2 * (cfg.buffer.mode == "shared") + (cfg.overwrite.mode == "soft")]
 
 
 def holdings(cfg: DictConfig, sizes) -> list:
-    """What :func:`train` builds: the TD3 learner, the three buffers (one in shared mode), OpenAI-ES and its generation."""
-    return [*buffer_holdings(cfg, sizes, buffers=1 if cfg.buffer.mode == "shared" else 3), *td3_holdings(cfg, sizes), *es_holdings(cfg, sizes)]
+    """What :func:`train` builds: the learner, the three buffers (one in shared mode), OpenAI-ES and its generation."""
+    return [*buffer_holdings(cfg, sizes, buffers=1 if cfg.buffer.mode == "shared" else 3), *learner_holdings(cfg, sizes), *es_holdings(cfg, sizes)]
 
 
-main = recipe_main(train, config_name="config", algorithm=algorithm, holdings=holdings)
+main = recipe_main(train, config_name="config", algorithm=algorithm, holdings=holdings, sections={"learner": LearnerConfig})
 
 if __name__ == "__main__":
     main()

@@ -47,7 +47,9 @@ def outside(check: dict):
     if check["kind"] == "number":
         if check["high"] is not None:
             return check["high"] + 1
-        return check["low"] if check["low_open"] else check["low"] - 1
+        if check["low"] is not None:
+            return check["low"] if check["low_open"] else check["low"] - 1
+        return None  # any number (SAC's target entropy)
     return {"choice": "not_a_choice", "layers": [], "name": "' '", "host_port": "somewhere", "mapping": 3}.get(check["kind"])
 
 

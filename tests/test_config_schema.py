@@ -167,6 +167,9 @@ def test_renamed_and_added_keys_come_from_the_schema_and_old_configs_resume_in_t
     assert today == {"implementation": "reference", "mode": None, "td3": {"fast": None, "lr": 0.1, "precision": "fp32"}, "es": {"sigma": 0.1, "schedule": "async"},
                      "env": {"id": "Walker2d-v5", "kwargs": {}, "wrappers": [], "transforms": []}}
     assert old["td3"]["fast"] is False and "kwargs" not in old["env"]  # the saved config itself is left as it is
+    # A recipe's own section (recipe_main's sections) that its runs saved before it had it: at its defaults.
+    learner = in_todays_names(old, recipe_of("es_td3.py").schema)["learner"]
+    assert learner["name"] == "td3" and learner["sac"]["alpha_init"] == 1.0
 
 
 def _algorithm_recipes() -> dict[str, str]:
@@ -195,7 +198,7 @@ def test_the_committed_runs_configs_read_as_their_recipes_configs_today():
         if script not in keys:
             keys[script] = {key for key, _ in _leaves(OmegaConf.to_container(composed(recipe.config_name), resolve=True))}
         saved = OmegaConf.to_container(OmegaConf.load(run / "config.yaml"))
-        if not keys[script] <= {key for key, _ in _leaves(in_todays_names(saved))}:
+        if not keys[script] <= {key for key, _ in _leaves(in_todays_names(saved, recipe.schema))}:
             continue  # older than a key today's config has
         today = in_todays_names(saved, recipe.schema)
         assert {key for key, _ in _leaves(today)} == keys[script], (run, {key for key, _ in _leaves(today)} ^ keys[script])

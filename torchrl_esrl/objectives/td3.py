@@ -14,12 +14,12 @@ from collections.abc import Collection
 import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictSequential
-from torchrl.modules import AdditiveGaussianModule
 from torchrl.objectives import SoftUpdate, TD3Loss
 
 from torchrl_esrl.errors import check_finite
 from torchrl_esrl.modules.networks import NETWORK_FIELD, actor_parameters
 from torchrl_esrl.modules.warmup import RandomWarmup
+from torchrl_esrl.objectives.learner import gaussian_exploration
 from torchrl_esrl.objectives.manual_grad import ManualGradTD3Loss, TD3LossQ1Actor, backward
 from torchrl_esrl.run.capacity import Holding, mlp_parameters, network_holding
 from torchrl_esrl.run.implementation import chosen_pieces
@@ -98,7 +98,8 @@ class TD3:
     (``requires_grad_(False)``), work as in any PyTorch training loop, with every ``loss_class``.
 
     The reference is TorchRL's stock TD3 (``TD3Loss``, ``SoftUpdate``, ``Adam``);
-    :func:`make_td3` builds it from the config with the fast pieces chosen.
+    :func:`make_td3` builds it from the config with the fast pieces chosen. It is the paper's
+    :class:`~torchrl_esrl.objectives.learner.Learner` (``learner=td3``, the default).
     """
 
     # Parameter vectors held (and checkpointed), for the run's memory estimate: the actor, its
@@ -151,10 +152,7 @@ class TD3:
         self.actor_optimizer = torch.optim.Adam(list(actor.parameters()), lr=lr, **options)
         self.critic_optimizer = torch.optim.Adam(list(self.loss.qvalue_network_params.values(True, True)), lr=lr, **options)
         self.policy_delay = int(policy_delay)
-        self.exploration_policy = TensorDictSequential(
-            actor,
-            AdditiveGaussianModule(spec=action_spec, sigma_init=1.0, sigma_end=1.0, mean=0.0, std=float(exploration_noise)),
-        )
+        self.exploration_policy = gaussian_exploration(actor, action_spec, exploration_noise)
         self.num_threads = num_threads
         if precision not in self.PRECISIONS:
             raise ValueError(f"precision must be {' or '.join(self.PRECISIONS)}, got {precision!r}")
@@ -202,6 +200,22 @@ class TD3:
     def _step(self, optimizer: torch.optim.Adam) -> None:
         """``optimizer.step()``; fused Adam as one direct kernel call (same arithmetic)."""
         fused_adam_step(optimizer) if self.optimizer_impl == "fused" else optimizer.step()
+
+    def pieces(self) -> dict[str, tuple[bool, str | None]]:
+        """Which of the update's fast pieces run (:meth:`Learner.pieces
+        <torchrl_esrl.objectives.learner.Learner.pieces>`): the hand-written loss unless it hands
+        over to ``TD3Loss`` (and why), the foreach soft update, fused Adam."""
+        refusal = getattr(self.loss, "refusal", None)
+        why = refusal() if callable(refusal) else None
+        return {
+            "td3_loss": (isinstance(self.loss, ManualGradTD3Loss) and why is None, why),
+            "soft_update": (isinstance(self.target_update, ForeachSoftUpdate), None),
+            "adam": (self.optimizer_impl == "fused", None),
+        }
+
+    def metrics(self) -> dict[str, float]:
+        """None of its own (:class:`~torchrl_esrl.objectives.learner.Learner`)."""
+        return {}
 
     def state_dict(self) -> dict:
         return {

@@ -47,7 +47,8 @@ def schema_fields(schema=RunConfig, prefix: str = "") -> Iterator[tuple[str, dat
 
 
 def _default(item: dataclasses.Field):
-    return item.default_factory() if item.default_factory is not dataclasses.MISSING else item.default
+    value = item.default_factory() if item.default_factory is not dataclasses.MISSING else item.default
+    return dataclasses.asdict(value) if dataclasses.is_dataclass(value) else value  # a section: its keys
 
 
 def renamed_keys(schema=RunConfig) -> dict[str, Renamed]:

@@ -52,7 +52,8 @@ def implementations(cfg: DictConfig, **components) -> dict[str, str]:
     """What computes each piece of :data:`FAST_PIECES` in this run: ``fast``, ``reference``, or
     ``reference (why)`` where ``implementation=fast`` asked for the fast piece and it handed over
     (``es_physics: reference (env.wrappers: ClipReward)``). ``components`` are the recipe's, found
-    by what they are, whatever the recipe calls them (a :class:`TD3`, a ``TD3EnvState``, a
+    by what they are, whatever the recipe calls them (a :class:`~torchrl_esrl.objectives.learner.Learner`,
+    which says which of its update's pieces run, a ``TD3EnvState``, a
     :class:`MultiBuffer`, an :class:`ESCollector`; others are ignored); a piece the run does not
     have is left out."""
     from torchrl_esrl.collectors.es_collector import ESCollector
@@ -60,7 +61,7 @@ def implementations(cfg: DictConfig, **components) -> dict[str, str]:
     from torchrl_esrl.collectors.td3_collector import GymTD3Collector, TD3EnvState, _refusal
     from torchrl_esrl.data.multibuffer import MultiBuffer
     from torchrl_esrl.modules.networks import PopulationActor
-    from torchrl_esrl.objectives.td3 import TD3, ForeachSoftUpdate, ManualGradTD3Loss
+    from torchrl_esrl.objectives.learner import Learner
 
     asked = fast_pieces(cfg)
 
@@ -73,19 +74,15 @@ def implementations(cfg: DictConfig, **components) -> dict[str, str]:
             out[name] = "reference"
 
     out: dict[str, str] = {}
-    td3 = component(components, TD3)
-    if td3 is not None:
-        loss = td3.loss
-        refusal = getattr(loss, "refusal", None)
-        why = refusal() if callable(refusal) else None
-        piece("td3_loss", isinstance(loss, ManualGradTD3Loss) and why is None, why)
-        piece("soft_update", isinstance(td3.target_update, ForeachSoftUpdate))
-        piece("adam", td3.optimizer_impl == "fused")
+    learner = component(components, Learner)
+    if learner is not None:
+        for name, (fast, why) in learner.pieces().items():
+            piece(name, fast, why)
     td3_env = component(components, TD3EnvState)
     if td3_env is not None:
         collector = td3_env.collector
         fast = isinstance(collector, GymTD3Collector)
-        piece("td3_collector", fast, None if fast or td3 is None else _refusal(collector.env, td3.exploration_policy, cfg.device))
+        piece("td3_collector", fast, None if fast or learner is None else _refusal(collector.env, learner.exploration_policy, cfg.device))
     buffer = component(components, MultiBuffer)
     if buffer is not None:
         piece("buffer_writes", buffer.direct_writes)

@@ -52,7 +52,7 @@ from tqdm.auto import tqdm
 from torchrl_esrl.collectors.es_collector import ESCollector
 from torchrl_esrl.envs import EnvSizes, EnvSpec, env_sizes
 from torchrl_esrl.errors import CheckpointWriteError, ConfigError
-from torchrl_esrl.objectives.td3 import TD3
+from torchrl_esrl.objectives.learner import Learner
 from torchrl_esrl.run.algorithm_info import AlgorithmInfo
 from torchrl_esrl.run.capacity import Holding, estimate
 from torchrl_esrl.run.checkpoint import CHECKPOINT_DIR, RunCheckpoint
@@ -158,11 +158,11 @@ class Run(RunHarness):
 
 def threads_used(components: dict) -> dict:
     """The threads a run's phases use (``summary.json``'s ``threads``): the TD3 phase's torch
-    threads and the ES backend's MuJoCo threads, where the run has them."""
+    threads (its learner's) and the ES backend's MuJoCo threads, where the run has them."""
     threads = {}
-    td3 = component(components, TD3)
-    if getattr(td3, "num_threads", None) is not None:
-        threads["td3"] = int(td3.num_threads)
+    learner = component(components, Learner)
+    if getattr(learner, "num_threads", None) is not None:
+        threads["td3"] = int(learner.num_threads)
     es_threads = getattr(getattr(component(components, ESCollector), "backend", None), "nthread", None)
     if es_threads is not None:
         threads["es"] = int(es_threads)

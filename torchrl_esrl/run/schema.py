@@ -265,7 +265,8 @@ def recipe_schema(config_name: str, sections: Mapping[str, type] | None = None) 
     name = schema_name(config_name)
     schema = make_dataclass(
         "".join(part.title() for part in name.split("_")),
-        [(key, section, field(default_factory=section)) for key, section in sections.items()],
+        # added: a saved config without a section (a run checkpointed before its recipe had it) resumes at its defaults
+        [(key, section, field(default_factory=section, metadata={"added": True})) for key, section in sections.items()],
         bases=(RunConfig,),
     )
     schema.__doc__ = f"conf/{config_name}.yaml's keys: every run's (RunConfig) and {', '.join(sections)}."
