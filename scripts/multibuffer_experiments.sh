@@ -11,6 +11,10 @@
 # SET=quarter (conf/experiment/quarter.yaml: the paper's schedule at 25%, K = M/4), 30 runs: Walker2d-v5
 #   first, then HalfCheetah-v5, seeds 0-4 of: ES-TD3Buffers 0.5:0.2:0.3; one shared buffer
 #   (buffer.mode=shared); TD3 (Fujimoto's uniform warm-up, K = 6,250 frames).
+# SET=table1 (the miniature's preset and scaling), 30 runs: HalfCheetah-v5 and Walker2d-v5, seeds 0-4 of the
+#   rows of the paper's Table 1 that have no other set: CEM (recipes/cem.py), ERL (recipes/erl.py) and ERL with
+#   the return-routed MultiBuffer (recipes/erl_buffers.py), each counting every env frame toward the TD3 rows'
+#   (i + 1) x M frames at iteration i (docs/deviations.md).
 # SET=cem_rl_buffers (the miniature's preset and scaling), 20 runs: HalfCheetah-v5 and Walker2d-v5, seeds
 #   0-4 of CEM-RL and of CEM-RL with the return-routed MultiBuffer (recipes/cem_rl_buffers.py): 80k frames
 #   each, 8 iterations of one 10-member generation (td3.frames_per_iteration=10000), K = 1,000, the
@@ -46,7 +50,7 @@ WORK=${1:-runs_$SET}
 JOBS=${2:-2}
 shift $(( $# < 2 ? $# : 2 ))
 cd "$(dirname "$0")/.."
-case $SET in cem_rl_buffers) PRESET=${PRESET:-miniature} ;; *) PRESET=${PRESET:-$SET} ;; esac
+case $SET in cem_rl_buffers|table1) PRESET=${PRESET:-miniature} ;; *) PRESET=${PRESET:-$SET} ;; esac
 export SET PRESET WORK JOBS EXTRA="$*" RESULTS=${RESULTS:-docs/results/runs/$SET} PYTHON=${PYTHON:-python} COMMIT=${COMMIT:-0} KEEP_CHECKPOINTS=${KEEP_CHECKPOINTS:-0}
 ONLY=${ONLY:-.}
 mkdir -p "$WORK" "$RESULTS"
@@ -85,6 +89,14 @@ runs() {  # env row recipe seed [overrides...], one run per line, in the order t
           echo "$env td3 td3.py $seed"
         done
       done ;;
+    table1)
+      for seed in 0 1 2 3 4; do
+        for env in halfcheetah walker2d; do
+          echo "$env cem cem.py $seed"
+          echo "$env erl erl.py $seed"
+          echo "$env erl_buffers erl_buffers.py $seed"
+        done
+      done ;;
     cem_rl_buffers)
       for seed in 0 1 2 3 4; do
         for env in halfcheetah walker2d; do
@@ -92,7 +104,7 @@ runs() {  # env row recipe seed [overrides...], one run per line, in the order t
           echo "$env cem_rl_buffers cem_rl_buffers.py $seed iterations=8 td3.frames_per_iteration=10000"
         done
       done ;;
-    *) echo "unknown SET=$SET (miniature | quarter | multibuffer | cem_rl_buffers)" >&2; return 1 ;;
+    *) echo "unknown SET=$SET (miniature | quarter | table1 | multibuffer | cem_rl_buffers)" >&2; return 1 ;;
   esac
 }
 
