@@ -43,15 +43,21 @@ def train(cfg: DictConfig, run: Run) -> dict:
     cem = make_cem(cfg, actor)
     population_collector = make_es_collector(cfg, actor)  # one deterministic episode per member
     rl_members = int(cfg.cem.population_size * cfg.cem.rl_fraction)
-    generations = run.progress.phase = GenerationsProgress()  # the iteration under way, checkpointed at every stop point
+    generations = run.progress.phase = GenerationsProgress()  # the iteration under way, checkpointed at stop points
     run.start(actor, td3=td3, buffer=buffer, cem=cem, population_collector=population_collector)
     counters = run.progress.counters  # checkpointed with the run; cem_rl_iteration advances them
     for iteration in run.iterations("CEM-RL"):
-        # Generations until M new frames: the RL half trained, every member's episode into the buffer, the elites update CEM.
-        stats = cem_rl_iteration(cem, td3, buffer, population_collector, counters, cfg.td3.frames_per_iteration, cfg.cem.start_frames, rl_members, cfg.td3.tau,
-                                 at=generations, stop_point=run.stop_point)
-        run.log(iteration, counters["frames"], 0, eval_return=run.evaluate(cem.mean), **cem_rl_metrics(cem, td3, counters, stats))
-    return run.finish(cem.mean, {"generations": cem.generation, "td3_updates": td3.updates, "population_size": int(cfg.cem.population_size)})
+        # Generations until M new frames: the RL half trained, every member's episode into the buffer,
+        # the elites update CEM.
+        stats = cem_rl_iteration(
+            cem, td3, buffer, population_collector, counters, cfg.td3.frames_per_iteration, cfg.cem.start_frames,
+            rl_members, cfg.td3.tau, at=generations, stop_point=run.stop_point,
+        )
+        mean_return = run.evaluate(cem.mean)
+        run.log(iteration, counters["frames"], 0, eval_return=mean_return, **cem_rl_metrics(cem, td3, counters, stats))
+    return run.finish(cem.mean, {
+        "generations": cem.generation, "td3_updates": td3.updates, "population_size": int(cfg.cem.population_size),
+    })
 
 
 def holdings(cfg: DictConfig, sizes) -> list:

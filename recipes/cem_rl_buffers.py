@@ -17,7 +17,13 @@ from __future__ import annotations
 from omegaconf import DictConfig
 
 from torchrl_esrl.algorithm.cem_rl_iteration import (
-    POPULATION_FRAMES, GenerationsProgress, cem_rl_iteration, cem_rl_metrics, one_buffer, population_under_way_holdings, routed_by_return,
+    POPULATION_FRAMES,
+    GenerationsProgress,
+    cem_rl_iteration,
+    cem_rl_metrics,
+    one_buffer,
+    population_under_way_holdings,
+    routed_by_return,
 )
 from torchrl_esrl.collectors.es_collector import make_es_collector
 from torchrl_esrl.data.multibuffer import buffer_holdings, make_multibuffer
@@ -30,12 +36,17 @@ from torchrl_esrl.run.algorithm_info import AlgorithmInfo
 from torchrl_esrl.run.lifecycle import Run, recipe_main
 
 ALGORITHMS = (
-    AlgorithmInfo("cem_rl_buffers", "CEM-RL (return-routed buffers)", returned="CEM mean", rank=5, td3_frames=POPULATION_FRAMES),
-    AlgorithmInfo("cem_rl_buffers_shared", "CEM-RL (return-routed buffers, one shared buffer)", returned="CEM mean", rank=5, td3_frames=POPULATION_FRAMES),
+    AlgorithmInfo("cem_rl_buffers", "CEM-RL (return-routed buffers)", returned="CEM mean", rank=5,
+                  td3_frames=POPULATION_FRAMES),
+    AlgorithmInfo("cem_rl_buffers_shared", "CEM-RL (return-routed buffers, one shared buffer)", returned="CEM mean",
+                  rank=5, td3_frames=POPULATION_FRAMES),
 )
 # With experiment=tiny (the tests' budget, tests/conftest.py): a good episode by the first generation's end,
 # so that the strict readiness rule lets the RL members learn in the second.
-TINY_OVERRIDES = ("cem.population_size=6", "cem.start_frames=0", "buffer.batch_size=32", "buffer.min_size=32", "buffer.renormalize=false")
+TINY_OVERRIDES = (
+    "cem.population_size=6", "cem.start_frames=0",
+    "buffer.batch_size=32", "buffer.min_size=32", "buffer.renormalize=false",
+)
 
 
 def train(cfg: DictConfig, run: Run) -> dict:
@@ -47,17 +58,20 @@ def train(cfg: DictConfig, run: Run) -> dict:
     population_collector = make_es_collector(cfg, actor)  # one deterministic episode per member
     rl_members = int(cfg.cem.population_size * cfg.cem.rl_fraction)
     route = one_buffer if cfg.buffer.mode == "shared" else routed_by_return(threshold, rl_members)
-    generations = run.progress.phase = GenerationsProgress()  # the iteration under way, checkpointed at every stop point
+    generations = run.progress.phase = GenerationsProgress()  # the iteration under way, checkpointed at stop points
     run.start(actor, td3=td3, buffer=buffer, threshold=threshold, cem=cem, population_collector=population_collector)
     counters = run.progress.counters  # checkpointed with the run; cem_rl_iteration advances them
     for iteration in run.iterations("CEM-RL (return-routed buffers)"):
         # Generations until M new frames: the RL half trained on batches at the ratio once every buffer
         # holds K; RL members' episodes to noisy, CEM members' to good or bad by the threshold; the elites update CEM.
-        stats = cem_rl_iteration(cem, td3, buffer, population_collector, counters, cfg.td3.frames_per_iteration, cfg.cem.start_frames, rl_members, cfg.td3.tau, route,
-                                 at=generations, stop_point=run.stop_point)
+        stats = cem_rl_iteration(
+            cem, td3, buffer, population_collector, counters, cfg.td3.frames_per_iteration, cfg.cem.start_frames,
+            rl_members, cfg.td3.tau, route, at=generations, stop_point=run.stop_point,
+        )
         run.log(
-            iteration, counters["frames"], 0, eval_return=run.evaluate(cem.mean), **cem_rl_metrics(cem, td3, counters, stats),
-            **threshold.metrics(), **{f"{name}_size": size for name, size in buffer.sizes().items()},
+            iteration, counters["frames"], 0, eval_return=run.evaluate(cem.mean),
+            **cem_rl_metrics(cem, td3, counters, stats), **threshold.metrics(),
+            **{f"{name}_size": size for name, size in buffer.sizes().items()},
         )
     return run.finish(cem.mean, {
         "generations": cem.generation,
@@ -80,7 +94,9 @@ def holdings(cfg: DictConfig, sizes) -> list:
             *cem_holdings(cfg, sizes), *population_under_way_holdings(cfg, sizes)]
 
 
-main = recipe_main(train, config_name="cem_rl_buffers", algorithm=algorithm, holdings=holdings, sections={"cem": CEMConfig})
+main = recipe_main(
+    train, config_name="cem_rl_buffers", algorithm=algorithm, holdings=holdings, sections={"cem": CEMConfig},
+)
 
 if __name__ == "__main__":
     main()

@@ -56,10 +56,15 @@ def train(cfg: DictConfig, run: Run) -> dict:
     actor = td3.actor  # its deterministic policy pi: what ES searches over (SAC: the mean action)
     collector, frame_batches = make_frame_batches(cfg, env, td3)
     es, es_collector = make_es(cfg, actor), make_es_collector(cfg, actor)
-    es_phase = make_es_phase(cfg, es, es_collector, make_multibuffer(cfg), make_threshold(cfg), on_generation=run.on_es_generation)
+    es_phase = make_es_phase(
+        cfg, es, es_collector, make_multibuffer(cfg), make_threshold(cfg), on_generation=run.on_es_generation,
+    )
     buffer, threshold = es_phase.buffer, es_phase.threshold  # lock-guarded when ES runs in the background
     overwrite = make_overwrite_rule(cfg)
-    run.start(actor, td3=td3, exploration=td3.exploration_policy, td3_env=TD3EnvState(collector), buffer=buffer, es=es, es_collector=es_collector, threshold=threshold, overwrite=overwrite)
+    run.start(
+        actor, td3=td3, exploration=td3.exploration_policy, td3_env=TD3EnvState(collector), buffer=buffer,
+        es=es, es_collector=es_collector, threshold=threshold, overwrite=overwrite,
+    )
 
     for iteration in run.iterations(algorithm(cfg).label):
         es_phase.start()  # es.schedule=async: this iteration's ES generations run alongside the TD3 phase
@@ -80,12 +85,13 @@ def train(cfg: DictConfig, run: Run) -> dict:
         decision = overwrite(td3_return, es_return)
         if decision.overwrite:
             es.set_mean(flat_parameters(actor), reset_optimizer=cfg.overwrite.reset_optimizer, mix=overwrite.mix)
+        # The returned policy: mu after the rule (a soft overwrite's mean is evaluated anew).
+        returned_policy_return = overwrite.mean_return(decision, lambda: run.evaluate(es.mean.detach()))
         run.log(
-            iteration, run.progress.frames_now, es_collector.frames,  # the returned policy: the ES mean after the rule (soft: evaluated anew)
-            eval_return=es_return if not decision.overwrite else td3_return if overwrite.mix == 1 else run.evaluate(es.mean.detach()),
+            iteration, run.progress.frames_now, es_collector.frames, eval_return=returned_policy_return,
             td3_updates=td3.updates, **decision.metrics(), **threshold.metrics(),
-            **{f"{name}_size": size for name, size in buffer.sizes().items()},
-            **generations.metrics(), critic_loss=td3_stats["critic_loss"], actor_loss=td3_stats["actor_loss"], buffer_mode=cfg.buffer.mode,
+            **{f"{name}_size": size for name, size in buffer.sizes().items()}, **generations.metrics(),
+            critic_loss=td3_stats["critic_loss"], actor_loss=td3_stats["actor_loss"], buffer_mode=cfg.buffer.mode,
             **td3.metrics(),  # the learner's own (SAC: its entropy temperature)
         )
     collector.shutdown()
@@ -105,15 +111,19 @@ def train(cfg: DictConfig, run: Run) -> dict:
 
 def algorithm(cfg: DictConfig) -> AlgorithmInfo:
     """The variant ``cfg`` runs: the learner, the buffer mode, then the overwrite mode."""
-    return ALGORITHMS[4 * list(LEARNERS).index(cfg.learner.name) + 2 * (cfg.buffer.mode == "shared") + (cfg.overwrite.mode == "soft")]
+    learner = list(LEARNERS).index(cfg.learner.name)
+    return ALGORITHMS[4 * learner + 2 * (cfg.buffer.mode == "shared") + (cfg.overwrite.mode == "soft")]
 
 
 def holdings(cfg: DictConfig, sizes) -> list:
     """What :func:`train` builds: the learner, the three buffers (one in shared mode), OpenAI-ES and its generation."""
-    return [*buffer_holdings(cfg, sizes, buffers=1 if cfg.buffer.mode == "shared" else 3), *learner_holdings(cfg, sizes), *es_holdings(cfg, sizes)]
+    buffers = buffer_holdings(cfg, sizes, buffers=1 if cfg.buffer.mode == "shared" else 3)
+    return [*buffers, *learner_holdings(cfg, sizes), *es_holdings(cfg, sizes)]
 
 
-main = recipe_main(train, config_name="config", algorithm=algorithm, holdings=holdings, sections={"learner": LearnerConfig})
+main = recipe_main(
+    train, config_name="config", algorithm=algorithm, holdings=holdings, sections={"learner": LearnerConfig},
+)
 
 if __name__ == "__main__":
     main()

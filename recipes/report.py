@@ -1,7 +1,8 @@
 """The report over run or multirun directories (logic in torchrl_esrl/report/).
 
     python recipes/report.py outputs/ multirun/2026-11-22 --out report/
-    python recipes/report.py docs/results/runs/paper docs/results/runs/miniature --overview --started started.txt --out overview/
+    python recipes/report.py docs/results/runs/paper docs/results/runs/miniature --overview \
+        --started started.txt --out overview/
 
 Writes results.csv/.md (Table 1: mean, std, median per env x algorithm, plus the IQM with a 95%
 stratified-bootstrap CI), improvement.csv/.md (probability of improvement of --reference),
@@ -17,8 +18,8 @@ timing.md (timing.txt, pieces.txt: each run's seconds net of its holds, pauses.t
 missing from the record).
 
 With --overview, only overview.csv/.md: the paper's Table 1 (--paper-table, a CSV) beside the
-runs' final returns per experiment preset; --started names a file of runs started but not recorded ("<env id> <algorithm>
-<experiment>" a line), whose cells say "running".
+runs' final returns per experiment preset; --started names a file of runs started but not recorded
+("<env id> <algorithm> <experiment>" a line), whose cells say "running".
 
 Labels and row order: every recipe's ALGORITHMS in this folder (torchrl_esrl/run/algorithm_info.py);
 an algorithm no recipe declares is shown by its name.
@@ -32,38 +33,51 @@ from pathlib import Path
 from torchrl_esrl.report import Algorithms, make_overview, make_report
 from torchrl_esrl.run.algorithm_info import discover
 
-PAPER_TABLE = Path(__file__).resolve().parents[1] / "docs" / "results" / "paper_table1.csv"  # the paper's Table 1 as printed
+PAPER_TABLE = Path(__file__).resolve().parents[1] / "docs" / "results" / "paper_table1.csv"  # Table 1 as printed
 
 
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("paths", nargs="+", help="run directories or folders holding runs (searched recursively)")
     parser.add_argument("--out", default="report", help="output folder (default: report/)")
-    parser.add_argument("--overview", action="store_true", help="write only overview.md: the paper's Table 1 beside the runs")
-    parser.add_argument("--paper-table", default=str(PAPER_TABLE), help="with --overview: the paper's table, one 'env,task,algorithm,label,mean,std,median' row per entry (default: %(default)s)")
-    parser.add_argument("--started", default=None, help="with --overview: runs started and not yet recorded, one '<env id> <algorithm> <experiment>' a line")
-    parser.add_argument("--reference", default="es_td3_buffers", help="the row every other is compared to, at the paper's ratio (default: %(default)s)")
-    parser.add_argument("--normalise-by", default="td3", help="the row whose mean final return is 1 on the aggregate's scale (default: %(default)s)")
-    parser.add_argument("--es-alone", default="es", help="the row a never-overwritten ES mean is checked against, seed by seed (default: %(default)s)")
-    parser.add_argument("--overview-order", default="es_td3_buffers,es_td3_shared,td3,es,cem_rl",
-                        help="with --overview: the algorithms of its first rows, comma-separated; the others follow in row order (default: %(default)s)")
+    option = parser.add_argument
+    option("--overview", action="store_true", help="write only overview.md: the paper's Table 1 beside the runs")
+    option("--paper-table", default=str(PAPER_TABLE), help=(
+        "with --overview: the paper's table, one 'env,task,algorithm,label,mean,std,median' row per entry "
+        "(default: %(default)s)"))
+    option("--started", default=None, help=(
+        "with --overview: runs started and not yet recorded, one '<env id> <algorithm> <experiment>' a line"))
+    option("--reference", default="es_td3_buffers", help=(
+        "the row every other is compared to, at the paper's ratio (default: %(default)s)"))
+    option("--normalise-by", default="td3", help=(
+        "the row whose mean final return is 1 on the aggregate's scale (default: %(default)s)"))
+    option("--es-alone", default="es", help=(
+        "the row a never-overwritten ES mean is checked against, seed by seed (default: %(default)s)"))
+    option("--overview-order", default="es_td3_buffers,es_td3_shared,td3,es,cem_rl", help=(
+        "with --overview: the algorithms of its first rows, comma-separated; the others follow in row order "
+        "(default: %(default)s)"))
     args = parser.parse_args(argv)
     # Built here, not at import: discover() imports every recipe of this folder, this one too.
     infos = discover(Path(__file__).parent)
-    for option, name in (("--reference", args.reference), ("--normalise-by", args.normalise_by), ("--es-alone", args.es_alone)):
+    rows = {"--reference": args.reference, "--normalise-by": args.normalise_by, "--es-alone": args.es_alone}
+    for flag, name in rows.items():
         if name not in infos:
-            print(f"config error: {option}: {name!r} is no recipe's algorithm (allowed: {', '.join(sorted(infos))})", file=sys.stderr)
+            allowed = ", ".join(sorted(infos))
+            print(f"config error: {flag}: {name!r} is no recipe's algorithm (allowed: {allowed})", file=sys.stderr)
             sys.exit(2)
     if args.overview and not Path(args.paper_table).is_file():
-        print(f"config error: --paper-table: {args.paper_table} is not a file (allowed: a CSV of the paper's table, as {PAPER_TABLE.name})", file=sys.stderr)
+        allowed = f"a CSV of the paper's table, as {PAPER_TABLE.name}"
+        print(f"config error: --paper-table: {args.paper_table} is not a file (allowed: {allowed})", file=sys.stderr)
         sys.exit(2)
     algorithms = Algorithms(infos, reference=args.reference, normalise_by=args.normalise_by, es_alone=args.es_alone)
     if args.overview:
-        report = make_overview(args.paths, args.out, algorithms, args.paper_table, args.started, tuple(filter(None, args.overview_order.split(","))))
+        first_rows = tuple(filter(None, args.overview_order.split(",")))
+        report = make_overview(args.paths, args.out, algorithms, args.paper_table, args.started, first_rows)
     else:
         report = make_report(args.paths, args.out, algorithms)
     print(Path(report["table_md"]).read_text())
-    print(f"{report['runs']} runs -> {args.out}" + (": " + ", ".join(p.name for p in report["figures"]) if report["figures"] else ""))
+    figures = ", ".join(p.name for p in report["figures"])
+    print(f"{report['runs']} runs -> {args.out}" + (f": {figures}" if figures else ""))
 
 
 if __name__ == "__main__":

@@ -68,7 +68,9 @@ def holdings(cfg: DictConfig, sizes) -> list:
     return [*learner_holdings(cfg, sizes), *buffer_holdings(cfg, sizes, buffers=1)]
 
 
-main = recipe_main(train, config_name="td3", algorithm=algorithm, holdings=holdings, sections={"learner": LearnerConfig})
+main = recipe_main(
+    train, config_name="td3", algorithm=algorithm, holdings=holdings, sections={"learner": LearnerConfig},
+)
 
 if __name__ == "__main__":
     main()

@@ -74,3 +74,18 @@ def test_soft_overwrite_moves_the_es_mean_part_way_to_the_actor():
     # the distance to the actor shrinks by exactly (1 - mix)
     before, after = (old_mean - flat_parameters(actor)).norm(), (es.mean.detach() - flat_parameters(actor)).norm()
     assert after == pytest.approx(0.75 * before.item(), rel=1e-4)
+
+
+@pytest.mark.parametrize(("mode", "mix"), [("hard", 1.0), ("soft", 0.5)])
+def test_the_returned_policys_return_is_the_es_means_after_the_rule(mode, mix):
+    """Kept: the ES evaluation; overwritten: the TD3 actor's (hard, the mean is that actor) or a new
+    evaluation of the mixed mean (soft), asked for only then."""
+    rule, asked = OverwriteRule(window=1, mode=mode, mix=mix), []
+
+    def evaluate_mean():
+        asked.append(True)
+        return 7.0
+
+    assert rule.mean_return(rule(td3_return=1.0, es_return=2.0), evaluate_mean) == 2.0 and not asked
+    overwritten = rule.mean_return(rule(td3_return=5.0, es_return=3.0), evaluate_mean)
+    assert overwritten == (5.0 if mode == "hard" else 7.0) and len(asked) == (mode == "soft")

@@ -64,6 +64,14 @@ class OverwriteRule:
         self.decisions.append(decision)
         return decision
 
+    def mean_return(self, decision: OverwriteDecision, evaluate_mean) -> float:
+        """The return of the ES mean after ``decision``, the policy the run returns: the ES evaluation
+        where the mean was kept, the TD3 one after a hard overwrite (the mean is the TD3 actor), and
+        ``evaluate_mean()``, a new evaluation, after a soft one."""
+        if not decision.overwrite:
+            return decision.es_return
+        return decision.td3_return if self.mix == 1 else evaluate_mean()
+
     def state_dict(self) -> dict:
         return {
             "window": self.window,
