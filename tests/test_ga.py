@@ -246,3 +246,43 @@ def test_bad_settings_are_refused_naming_the_field():
         algorithm.tell(algorithm.ask(), torch.zeros(9))
     with pytest.raises(FloatingPointError, match="non-finite"):
         algorithm.tell(algorithm.ask(), torch.full((10,), float("nan")))
+
+
+def test_each_member_plays_its_evaluations_and_its_fitness_is_their_mean():
+    algorithm = ga(size=4, seed=3, evaluations=3, elite_fraction=0.25)
+    population = algorithm.ask()
+    assert population.shape == (12, D)
+    assert torch.equal(population[0:3], algorithm.population[0].expand(3, D)) and torch.equal(population[9:12], algorithm.population[3].expand(3, D))
+    returns = torch.tensor([1.0, 2.0, 3.0, 9.0, 9.0, 9.0, -5.0, 0.0, 2.0, 4.0, 4.0, 4.0], dtype=torch.float64)  # means 2, 9, -1, 4
+    algorithm.tell(population, returns)
+    assert algorithm.returns.tolist() == [2.0, 9.0, -1.0, 4.0]
+    assert torch.equal(algorithm.champion, population[3]) and algorithm.weakest() == 2
+    assert algorithm.is_elite(1) and not algorithm.is_elite(3)
+    asked = algorithm.ask()
+    learner = torch.full((D,), 0.25)
+    assert algorithm.inject(asked, learner) == 2
+    assert torch.equal(asked[6:9], learner.expand(3, D))  # all three rows of the weakest member
+    algorithm.tell(asked, torch.zeros(12))
+    one_row = algorithm.ask()
+    one_row[0] += 1.0
+    with pytest.raises(ValueError, match="a member's rows differ"):
+        algorithm.tell(one_row, torch.zeros(12))
+
+
+def test_the_ga_section_refuses_what_the_ga_would_in_one_line_naming_the_key():
+    from omegaconf import OmegaConf
+
+    from torchrl_esrl.errors import ConfigError
+    from torchrl_esrl.es.ga import GAConfig, make_ga
+
+    section = OmegaConf.structured(GAConfig)
+    GAConfig.check(section, "ga")  # the authors' values pass
+    with pytest.raises(ConfigError, match=r"^ga.elite_fraction: 0.6 .*allowed"):
+        GAConfig.check(OmegaConf.merge(section, {"elite_fraction": 0.6}), "ga")
+    with pytest.raises(ConfigError, match=r"^ga.reset_prob: .*allowed"):
+        GAConfig.check(OmegaConf.merge(section, {"super_mutation_prob": 0.5, "reset_prob": 0.6}), "ga")
+    actor = make_actor(8, make_env("swimmer").action_spec, (16, 16))
+    cfg = OmegaConf.create({"seed": 4, "ga": OmegaConf.merge(section, {"population_size": 6, "evaluations": 2})})
+    built = make_ga(cfg, actor)
+    assert built.ask().shape == (12, flat_parameters(actor).numel()) and built.num_elites == 1
+    assert torch.equal(built.population, GeneticAlgorithm.for_actor(actor, 6, torch.Generator().manual_seed(5)).population)  # seed + 1

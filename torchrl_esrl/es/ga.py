@@ -4,7 +4,8 @@ Learning", NeurIPS 2018) over actors' flat parameters, with the ask/tell interfa
 (``core/mod_neuro_evo.py``, class ``SSNE``; ``run_erl.py``, class ``Parameters``; public copies such
 as ``zhan0903/erl_paper_nips18``).
 
-One generation (:meth:`GeneticAlgorithm.tell`), from the population as evaluated and its returns:
+One generation (:meth:`GeneticAlgorithm.tell`), from the population as evaluated and its returns
+(each member's fitness the mean return of its ``evaluations`` episodes, the authors' ``num_evals``):
 
 - **Selection.** Members ranked by return; the best ``elite_fraction`` are the elites (at least
   one). ``population_size - elites`` tournaments of ``tournament_size`` draws (with replacement,
@@ -28,9 +29,14 @@ One generation (:meth:`GeneticAlgorithm.tell`), from the population as evaluated
 The authors' numbers, the defaults here: population 10; elite fraction 0.1 (HalfCheetah, Swimmer;
 0.2 on Walker2d and Reacher, 0.3 on Hopper and Ant); tournaments of 3; crossover probability 0.0 between
 offspring; mutation probability 0.9; mutated fraction 0.1, strength 0.1; super mutation 0.05 at
-strength 10; reset 0.05; weight limit 1e6. ERL copies its learner over the member that scored
-lowest (:meth:`GeneticAlgorithm.weakest`, :meth:`GeneticAlgorithm.inject`) every 10 generations
-(every generation on Hopper and Ant); docs/deviations.md, 42-43.
+strength 10; reset 0.05; weight limit 1e6; one episode per member (3 on Walker2d, 5 on Hopper). ERL
+copies its learner over the member that scored lowest (:meth:`GeneticAlgorithm.weakest`,
+:meth:`GeneticAlgorithm.inject`) every 10 generations (every generation on Hopper and Ant);
+docs/deviations.md, 42-43.
+
+:class:`GAConfig` is the ``ga`` config section of the recipes that build a GA
+(``recipe_main(..., sections={"ga": GAConfig})``), :func:`make_ga` builds it from there and
+:func:`ga_holdings` says what it holds.
 """
 from __future__ import annotations
 
@@ -38,11 +44,44 @@ import copy
 import math
 from collections.abc import Sequence
 
+from dataclasses import dataclass
+
 import torch
 from torch import nn
 
+from torchrl_esrl.errors import ConfigError
 from torchrl_esrl.es.strategy import checked_returns
-from torchrl_esrl.modules.networks import Mirrored, flat_parameters
+from torchrl_esrl.modules.networks import Mirrored, actor_parameters, flat_parameters
+from torchrl_esrl.run.capacity import Holding, bytes_per_transition, network_holding, population_holdings
+from torchrl_esrl.run.schema import count, number, positive
+
+
+@dataclass
+class GAConfig:
+    """The ``ga`` config section: ERL's genetic algorithm, the authors' values (``run_erl.py``'s
+    ``Parameters``, ``mod_neuro_evo.py``'s ``SSNE``; docs/deviations.md, 43) on HalfCheetah and Swimmer;
+    ``conf/erl_env/`` sets those of Walker2d, Hopper and Ant."""
+
+    population_size: int = number(10, low=2, integer=True)
+    elite_fraction: float = number(0.1, low=0, high=1)  # at least one elite, at most half the members (check)
+    tournament_size: int = count(3)
+    crossover_prob: float = number(0.0, low=0, high=1)  # between selected offspring (the unselected always cross)
+    mutation_prob: float = number(0.9, low=0, high=1)  # per member, the new elites spared
+    mutation_fraction: float = number(0.1, low=0, high=1, low_open=True)  # entries of a weight matrix mutated at most
+    mutation_strength: float = positive(0.1)
+    super_mutation_strength: float = positive(10.0)
+    super_mutation_prob: float = number(0.05, low=0, high=1)
+    reset_prob: float = number(0.05, low=0, high=1)
+    weight_limit: float = positive(1.0e6)
+    evaluations: int = count(1)  # episodes per member, fitness their mean (num_evals)
+
+    @staticmethod
+    def check(ga, key: str) -> None:
+        """The checks across the section's keys (run by :func:`torchrl_esrl.run.config.validate_config`)."""
+        if 2 * max(1, int(ga.elite_fraction * ga.population_size)) > ga.population_size:
+            raise ConfigError(f"{key}.elite_fraction: {ga.elite_fraction} leaves fewer members than elites in a population of {ga.population_size} (allowed: at most half the members elites, at least one)")
+        if ga.super_mutation_prob + ga.reset_prob > 1:
+            raise ConfigError(f"{key}.reset_prob: {ga.super_mutation_prob} + {ga.reset_prob} is invalid (allowed: {key}.super_mutation_prob + {key}.reset_prob <= 1)")
 
 
 def parameter_shapes(actor: nn.Module) -> list[torch.Size]:
@@ -80,10 +119,13 @@ class GeneticAlgorithm:
         elite_fraction, tournament_size, crossover_prob, mutation_prob, mutation_fraction,
         mutation_strength, super_mutation_strength, super_mutation_prob, reset_prob, weight_limit:
             the operators' numbers (module docstring).
+        evaluations: episodes per member: ``ask`` gives each member this many consecutive rows,
+            ``tell`` takes one return per row and a member's fitness is the mean of its rows'.
         generator: torch RNG of every random draw.
 
     ``ask`` returns a copy of the population; ``tell(population, returns)`` takes the population as
-    evaluated (a population step may have written into it) and breeds the next one. The state a
+    evaluated (a population step may have written into it, every row of a member alike) and breeds
+    the next one. The state a
     checkpoint holds: the population (``population_size`` parameter vectors), the last returns,
     the champion's row, the generator and the generation count.
     """
@@ -102,6 +144,7 @@ class GeneticAlgorithm:
         super_mutation_prob: float = 0.05,
         reset_prob: float = 0.05,
         weight_limit: float = 1e6,
+        evaluations: int = 1,
         generator: torch.Generator | None = None,
     ):
         if population.dim() != 2 or population.shape[0] < 2:
@@ -117,6 +160,8 @@ class GeneticAlgorithm:
                 raise ValueError(f"ga.{name} must be in [0, 1], got {value}")
         if super_mutation_prob + reset_prob > 1:
             raise ValueError(f"ga.super_mutation_prob + ga.reset_prob must be <= 1, got {super_mutation_prob} + {reset_prob}")
+        if int(evaluations) < 1:
+            raise ValueError(f"ga.evaluations must be >= 1, got {evaluations}")
         if not 0 < mutation_fraction <= 1 or weight_limit <= 0:
             raise ValueError(f"ga.mutation_fraction must be in (0, 1] and ga.weight_limit > 0, got {mutation_fraction}, {weight_limit}")
         self.layers, offset = [], 0
@@ -134,9 +179,10 @@ class GeneticAlgorithm:
         self.mutation_fraction, self.mutation_strength = float(mutation_fraction), float(mutation_strength)
         self.super_mutation_strength, self.super_mutation_prob = float(super_mutation_strength), float(super_mutation_prob)
         self.reset_prob, self.weight_limit = float(reset_prob), float(weight_limit)
+        self.evaluations = int(evaluations)
         self.generator = generator if generator is not None else torch.Generator().manual_seed(0)
         self.generation = 0
-        self.returns: torch.Tensor | None = None  # the last told generation's, by row
+        self.returns: torch.Tensor | None = None  # the last told generation's fitness, by member
         self.champion_row = 0  # where the best member of the last told generation was copied
 
     @classmethod
@@ -163,27 +209,39 @@ class GeneticAlgorithm:
         return self.champion
 
     def ask(self) -> torch.Tensor:
-        """The population to evaluate, ``[population_size, D]`` (a copy: the GA's own stays as it is until told)."""
-        return self.population.clone()
+        """The population to evaluate, ``[population_size * evaluations, D]``: each member's
+        ``evaluations`` rows in a row (a copy: the GA's own stays as it is until told)."""
+        return self.population.repeat_interleave(self.evaluations, dim=0)
+
+    def members(self, population: torch.Tensor) -> torch.Tensor:
+        """``population`` (as asked) by member, ``[population_size, evaluations, D]``: a view, to write a member's rows at once."""
+        return population.view(self.population_size, self.evaluations, -1)
 
     def mirrored(self, population: torch.Tensor) -> Mirrored | None:
         """None: the GA's members are evaluated row by row."""
         return None
 
     def weakest(self) -> int:
-        """The row of the member that scored lowest in the last told generation (the first on ties),
-        where ERL copies its learner; after that tell the row holds one of the new generation's members."""
+        """The member that scored lowest in the last told generation (the first on ties), where ERL
+        copies its learner; after that tell its place holds one of the new generation's members."""
         if self.returns is None:
             raise RuntimeError("GeneticAlgorithm.weakest: no generation was told yet")
         return int(self.returns.argmin())
 
     @torch.no_grad()
     def inject(self, population: torch.Tensor, vector: torch.Tensor) -> int:
-        """Write ``vector`` (a learner's flat parameters) over the :meth:`weakest` row of
-        ``population`` (an asked population, before its evaluation); returns that row."""
-        row = self.weakest()
-        population[row] = vector.reshape(-1).to(population.dtype)
-        return row
+        """Write ``vector`` (a learner's flat parameters) over the :meth:`weakest` member of
+        ``population`` (an asked population, before its evaluation: all of that member's rows);
+        returns that member."""
+        member = self.weakest()
+        self.members(population)[member] = vector.reshape(-1).to(population.dtype)
+        return member
+
+    def is_elite(self, member: int) -> bool:
+        """Whether ``member`` of the last told generation was one of its elites (fewer better than it)."""
+        if self.returns is None:
+            raise RuntimeError("GeneticAlgorithm.is_elite: no generation was told yet")
+        return int((self.returns > self.returns[member]).sum()) < self.num_elites
 
     def _randint(self, high: int) -> int:
         return int(torch.randint(high, (1,), generator=self.generator))
@@ -193,12 +251,18 @@ class GeneticAlgorithm:
 
     @torch.no_grad()
     def tell(self, population: torch.Tensor, returns: torch.Tensor) -> torch.Tensor:
-        """Breed the next population from ``population`` as evaluated and the returns of its rows
-        (selection, elitism, crossover, mutation; module docstring); returns the new elites' rows, best first."""
-        if population.shape != self.population.shape:
-            raise ValueError(f"GeneticAlgorithm.tell: a population of shape {tuple(population.shape)}, expected {tuple(self.population.shape)}")
-        returns = checked_returns(returns, population, self.generation, torch.float64)
-        members = population.detach().clone().float()
+        """Breed the next population from ``population`` as evaluated (as asked: each member's
+        ``evaluations`` rows in a row) and the returns of its rows (selection, elitism, crossover,
+        mutation on the members' fitness, the mean of their rows'; module docstring); returns the
+        new elites' members, best first."""
+        expected = (self.population_size * self.evaluations, self.population.shape[1])
+        if tuple(population.shape) != expected:
+            raise ValueError(f"GeneticAlgorithm.tell: a population of shape {tuple(population.shape)}, expected {expected}")
+        returns = checked_returns(returns, population, self.generation, torch.float64).view(self.population_size, self.evaluations).mean(1)
+        by_member = self.members(population.detach())
+        if not torch.equal(by_member, by_member[:, :1].expand_as(by_member)):
+            raise ValueError("GeneticAlgorithm.tell: a member's rows differ; a population step must write all of a member's rows alike (members())")
+        members = by_member[:, 0].clone().float()
         size = self.population_size
         rank = returns.argsort(descending=True, stable=True).tolist()
         elites = rank[: self.num_elites]
@@ -290,6 +354,26 @@ class GeneticAlgorithm:
         self.returns = returns.clone() if returns.numel() else None
         self.champion_row, self.generation = int(state["champion_row"]), int(state["generation"])
         self.generator.set_state(state["generator"])
+
+
+def make_ga(cfg, actor) -> GeneticAlgorithm:
+    """The genetic algorithm of the ``ga`` section over ``actor``'s parameters: ``ga.population_size``
+    actors initialised afresh, on its own stream (``seed + 1``)."""
+    c = cfg.ga
+    operators = {key: c[key] for key in ("elite_fraction", "tournament_size", "crossover_prob", "mutation_prob", "mutation_fraction", "mutation_strength",
+                                        "super_mutation_strength", "super_mutation_prob", "reset_prob", "weight_limit", "evaluations")}
+    return GeneticAlgorithm.for_actor(actor, int(c.population_size), torch.Generator().manual_seed(int(cfg.seed) + 1), **operators)
+
+
+def ga_holdings(cfg, sizes) -> list[Holding]:
+    """What :func:`make_ga` holds, for the run's memory estimate (:mod:`torchrl_esrl.run.capacity`):
+    its population (checkpointed), and one generation as evaluated (the asked rows, the population
+    step's copy, the episodes until they are routed)."""
+    c, parameters = cfg.ga, actor_parameters(cfg, sizes)
+    field = "ga.population_size"
+    rows = int(c.population_size) * int(c.evaluations)
+    transition = bytes_per_transition(sizes.observation_dim, sizes.action_dim)
+    return [network_holding(int(c.population_size), parameters, field), *population_holdings(parameters, rows, False, sizes.episode_steps, transition, field)]
 
 
 def _in_rounds(entries: torch.Tensor) -> list[torch.Tensor]:
