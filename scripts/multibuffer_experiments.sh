@@ -14,7 +14,8 @@
 # SET=table1 (the miniature's preset and scaling), 30 runs: HalfCheetah-v5 and Walker2d-v5, seeds 0-4 of the
 #   rows of the paper's Table 1 that have no other set: CEM (recipes/cem.py), ERL (recipes/erl.py) and ERL with
 #   the return-routed MultiBuffer (recipes/erl_buffers.py), each counting every env frame toward the TD3 rows'
-#   (i + 1) x M frames at iteration i (docs/deviations.md).
+#   (i + 1) x M frames at iteration i, ERL's learner copied into the population every generation (erl.sync_period=1:
+#   the authors' 10 generations at 4%, rounded up; docs/deviations.md).
 # SET=cem_rl_buffers (the miniature's preset and scaling), 20 runs: HalfCheetah-v5 and Walker2d-v5, seeds
 #   0-4 of CEM-RL and of CEM-RL with the return-routed MultiBuffer (recipes/cem_rl_buffers.py): 80k frames
 #   each, 8 iterations of one 10-member generation (td3.frames_per_iteration=10000), K = 1,000, the
@@ -93,8 +94,8 @@ runs() {  # env row recipe seed [overrides...], one run per line, in the order t
       for seed in 0 1 2 3 4; do
         for env in halfcheetah walker2d; do
           echo "$env cem cem.py $seed"
-          echo "$env erl erl.py $seed"
-          echo "$env erl_buffers erl_buffers.py $seed"
+          echo "$env erl erl.py $seed erl.sync_period=1"
+          echo "$env erl_buffers erl_buffers.py $seed erl.sync_period=1"
         done
       done ;;
     cem_rl_buffers)
