@@ -33,9 +33,10 @@ def _bench_runs() -> list[str]:
 
 # report folder (under docs/results/) -> recipes/report.py's arguments but --out
 REPORTS = {
-    "overview": [*_runs("runs/paper", "runs/miniature", "runs/cem_rl_buffers"), "--overview", "--started", "docs/results/overview/started.txt"],
+    "overview": [*_runs("runs/paper", "runs/miniature", "runs/cem_rl_buffers", "runs/table1"), "--overview", "--started", "docs/results/overview/started.txt"],
     "miniature": _runs("runs/miniature"),
     "cem_rl_buffers": [*_runs("runs/cem_rl_buffers"), "--reference", "cem_rl_buffers", "--normalise-by", "cem_rl"],
+    "table1": [*_runs("runs/table1"), "--reference", "erl_buffers", "--normalise-by", "erl"],
     "multibuffer": _runs("runs/multibuffer"),
     "paper": _runs("runs/paper/walker2d/es_td3_seed0"),
     "paper/walker2d_td3": _runs("runs/paper/walker2d/td3_seed0"),
