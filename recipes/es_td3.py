@@ -31,19 +31,11 @@ from torchrl_esrl.run.algorithm_info import AlgorithmInfo
 from torchrl_esrl.run.lifecycle import Run, recipe_main
 
 # One name per variant (learner, buffer.mode, overwrite.mode): runs of different variants are different rows.
-ALGORITHMS = (
-    AlgorithmInfo("es_td3_buffers", "ES-TD3Buffers", returned="ES mean", rank=0),
-    AlgorithmInfo("es_td3_buffers_soft", "ES-TD3Buffers (soft overwrite)", returned="ES mean", rank=1),
-    AlgorithmInfo("es_td3_shared", "ES-TD3 (one shared buffer)", returned="ES mean", rank=2),
-    AlgorithmInfo("es_td3_shared_soft", "ES-TD3 (one shared buffer, soft overwrite)", returned="ES mean", rank=3),
-    AlgorithmInfo("es_ddpg_buffers", "ES-DDPGBuffers", returned="ES mean", rank=10),
-    AlgorithmInfo("es_ddpg_buffers_soft", "ES-DDPGBuffers (soft overwrite)", returned="ES mean", rank=11),
-    AlgorithmInfo("es_ddpg_shared", "ES-DDPG (one shared buffer)", returned="ES mean", rank=12),
-    AlgorithmInfo("es_ddpg_shared_soft", "ES-DDPG (one shared buffer, soft overwrite)", returned="ES mean", rank=13),
-    AlgorithmInfo("es_sac_buffers", "ES-SACBuffers", returned="ES mean", rank=20),
-    AlgorithmInfo("es_sac_buffers_soft", "ES-SACBuffers (soft overwrite)", returned="ES mean", rank=21),
-    AlgorithmInfo("es_sac_shared", "ES-SAC (one shared buffer)", returned="ES mean", rank=22),
-    AlgorithmInfo("es_sac_shared_soft", "ES-SAC (one shared buffer, soft overwrite)", returned="ES mean", rank=23),
+VARIANTS = (("buffers", "Buffers"), ("buffers_soft", "Buffers (soft overwrite)"),
+            ("shared", " (one shared buffer)"), ("shared_soft", " (one shared buffer, soft overwrite)"))
+ALGORITHMS = tuple(  # es_td3_buffers "ES-TD3Buffers" ... es_sac_shared_soft, in LEARNERS' order
+    AlgorithmInfo(f"es_{learner}_{variant}", f"ES-{label}{suffix}", returned="ES mean", rank=10 * i + j)
+    for i, (learner, label) in enumerate(LEARNERS.items()) for j, (variant, suffix) in enumerate(VARIANTS)
 )
 
 
