@@ -15,11 +15,11 @@ rows have at iteration i, so an experiment preset scales it by the preset's own 
 """
 from __future__ import annotations
 
-import torch
 from omegaconf import DictConfig
 
 from torchrl_esrl.algorithm.cem_rl_iteration import GenerationsProgress
 from torchrl_esrl.collectors.es_collector import make_es_collector
+from torchrl_esrl.collectors.generation import population_returns
 from torchrl_esrl.envs import make_train_env
 from torchrl_esrl.es.cem import CEMConfig, cem_holdings, make_cem
 from torchrl_esrl.modules.networks import make_actor_critic
@@ -58,13 +58,6 @@ def train(cfg: DictConfig, run: Run) -> dict:
             **population_returns(returns),
         )
     return run.finish(cem.mean, {"generations": cem.generation, "population_size": int(cfg.cem.population_size)})
-
-
-def population_returns(returns: torch.Tensor) -> dict:
-    """The mean and best member return of the iteration's generations, as CEM-RL logs them (empty if none)."""
-    if returns.numel() == 0:
-        return {"population_mean_return": "", "population_max_return": ""}
-    return {"population_mean_return": returns.mean().item(), "population_max_return": returns.max().item()}
 
 
 def holdings(cfg: DictConfig, sizes) -> list:

@@ -8,6 +8,7 @@ from dataclasses import dataclass, field
 
 import torch
 
+from torchrl_esrl.collectors.generation import population_returns
 from torchrl_esrl.es.cem import GradientStepsPosition, cem_rl_gradient_steps
 from torchrl_esrl.modules.networks import actor_parameters
 from torchrl_esrl.run.capacity import FLOAT, Holding
@@ -142,8 +143,7 @@ def cem_rl_metrics(cem, td3, counters: dict, stats: dict) -> dict:
         "generations": cem.generation,
         "td3_updates": td3.updates,
         "actor_steps": counters["actor_steps"],
-        "population_mean_return": returns.mean().item(),
-        "population_max_return": returns.max().item(),
+        **population_returns(returns),
         "critic_loss": sum(critic_losses) / len(critic_losses) if critic_losses else "",
         "cem_mean_std": cem.var.sqrt().mean().item(),
     }

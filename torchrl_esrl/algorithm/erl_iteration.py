@@ -24,6 +24,7 @@ import torch
 from tensordict import TensorDictBase
 
 from torchrl_esrl.algorithm.es_phase import es_phase
+from torchrl_esrl.collectors.generation import population_returns
 from torchrl_esrl.collectors.td3_collector import finished_episode_returns
 from torchrl_esrl.errors import check_finite
 from torchrl_esrl.modules.networks import flat_parameters
@@ -75,8 +76,7 @@ class ERLProgress:
         returns = torch.cat(self.returns) if self.returns else torch.empty(0)
         learner_returns = self.learner_returns
         stats = {
-            "population_mean_return": returns.mean().item() if returns.numel() else "",
-            "population_max_return": returns.max().item() if returns.numel() else "",
+            **population_returns(returns),
             "learner_episode_return": sum(learner_returns) / len(learner_returns) if learner_returns else "",
             "critic_loss": "",
             "actor_loss": "",

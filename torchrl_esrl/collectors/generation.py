@@ -71,3 +71,11 @@ def transitions_from_arrays(obs, actions, next_obs, rewards, terminated, truncat
         },
         batch_size=[n],
     )
+
+
+def population_returns(returns: torch.Tensor) -> dict:
+    """The ``population_mean_return`` and ``population_max_return`` columns of ``metrics.csv`` over
+    ``returns``, the members' returns of an iteration's generations ("" where it played none)."""
+    if returns.numel() == 0:
+        return {"population_mean_return": "", "population_max_return": ""}
+    return {"population_mean_return": returns.mean().item(), "population_max_return": returns.max().item()}
