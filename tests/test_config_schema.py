@@ -96,7 +96,7 @@ def test_nothing_under_run_or_report_names_an_algorithm():
     code, except the names that are also a component's config section (``td3``, ``es``: TD3 and
     OpenAI-ES). The paper's table is data (``docs/results/paper_table1.csv``)."""
     recipes = [ROOT / "recipes" / script for script in RECIPES]
-    names = {p.stem for p in recipes} | {name for p in recipes for name in re.findall(r'AlgorithmInfo\(\s*"(\w+)"', p.read_text())}
+    names = {p.stem for p in recipes} | {info.name for script in RECIPES for info in RECIPES[script].ALGORITHMS}
     names -= {item for script in RECIPES for item in recipe_of(script).schema.__dataclass_fields__}
     assert {"es_td3", "cem_rl_buffers", "es_td3_buffers", "cem_rl_buffers_shared"} <= names
     for path in [*(ROOT / "torchrl_esrl" / "run").glob("*.py"), *(ROOT / "torchrl_esrl" / "report").glob("*.py")]:
