@@ -102,3 +102,17 @@ def test_the_ga_plays_the_same_generations_whichever_buffer_until_the_learner_en
     assert torch.equal(shared["ga"].champion, routed["ga"].champion)
     learners = (flat_parameters(run["learner"].actor) for run in (shared, routed))
     assert not torch.equal(*learners)  # the learners differ
+
+
+def test_erl_buffers_learns_once_any_buffer_holds_k_and_the_strict_rule_waits_for_noisy():
+    """The learner's one episode a generation is all that fills noisy: ``conf/erl_buffers.yaml`` learns from the
+    buffers that hold K meanwhile (``buffer.renormalize=true``); the strict rule takes no update until noisy
+    holds K (docs/deviations.md, ERL with the MultiBuffer)."""
+    overrides = ("ga.population_size=4", "td3.updates_per_frame=0.02", "buffer.min_size=150", "erl.sync_period=100")
+    renormalised = erl_run("erl_buffers.py", 1, *overrides)
+    strict = erl_run("erl_buffers.py", 1, *overrides, "buffer.renormalize=false")
+    for run in (renormalised, strict):
+        sizes = run["buffer"].sizes()
+        assert sizes["noisy"] == 100 < 150 <= max(sizes["good"], sizes["bad"])  # 400 population frames, 100 learner's
+    assert renormalised["buffer"].renormalize and renormalised["learner"].updates == 10  # 0.02 x 500 frames
+    assert strict["learner"].updates == 0
