@@ -40,7 +40,8 @@ from benchmarks.es_population import make_population
 from benchmarks.td3_update import FAST_TD3, PlainTD3
 from torchrl_esrl.collectors.mujoco_batch import MujocoBatchBackend
 from torchrl_esrl.data.multibuffer import MultiBuffer
-from torchrl_esrl.modules.networks import PopulationActor, make_actor, make_critic, one_blas_thread
+from torchrl_esrl.modules.networks import make_actor, make_critic
+from torchrl_esrl.modules.population import PopulationActor, one_blas_thread
 from torchrl_esrl.objectives import mlp_chain_rule as chain
 from torchrl_esrl.objectives.td3 import TD3
 

@@ -50,7 +50,8 @@ from torchrl.data import Bounded
 from torchrl_esrl.collectors.gym_backend import GymBackend
 from torchrl_esrl.collectors.mujoco_batch import MujocoBatchBackend
 from torchrl_esrl.es.openes import OpenES
-from torchrl_esrl.modules.networks import PopulationActor, flat_parameters, load_flat_parameters, make_actor
+from torchrl_esrl.modules.networks import flat_parameters, load_flat_parameters, make_actor
+from torchrl_esrl.modules.population import PopulationActor
 
 ENVS = ["HalfCheetah-v5", "Walker2d-v5"]
 

@@ -583,7 +583,7 @@ def check_episodes(played: Played, part: str, actor, label: str) -> float:
     from torch.func import functional_call
 
     from torchrl_esrl.collectors.gym_backend import TorchRLMember
-    from torchrl_esrl.modules.networks import ModulePopulation
+    from torchrl_esrl.modules.population import ModulePopulation
 
     generation, params, seeds = played.episodes[part]
     members = ModulePopulation(actor).split(params)

@@ -4,7 +4,8 @@ import torch
 from torchrl_esrl.errors import ConfigError
 from torchrl_esrl.envs import make_env
 from torchrl_esrl.collectors.es_collector import ESCollector
-from torchrl_esrl.modules.networks import Mirrored, flat_parameters, make_actor
+from torchrl_esrl.modules.networks import flat_parameters, make_actor
+from torchrl_esrl.modules.population import Mirrored
 
 
 @pytest.fixture(scope="module")

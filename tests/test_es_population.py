@@ -6,7 +6,7 @@ import pytest
 
 from benchmarks.es_population import make_population, replay
 from torchrl_esrl.collectors.mujoco_batch import MujocoBatchBackend
-from torchrl_esrl.modules.networks import PopulationActor
+from torchrl_esrl.modules.population import PopulationActor
 
 
 @pytest.mark.parametrize("env_id", ["Walker2d-v5", "Ant-v5"])

@@ -9,10 +9,10 @@ from torch import nn
 from torchrl_esrl.collectors.es_collector import ESCollector
 from torchrl_esrl.collectors.td3_collector import GymTD3Collector
 from torchrl_esrl.envs import make_env, make_gym_env
-from torchrl_esrl.modules.networks import Mirrored, ModulePopulation, PopulationActor, flat_parameters, load_flat_parameters, make_actor, make_critic
+from torchrl_esrl.modules.networks import flat_parameters, load_flat_parameters, make_actor, make_critic
+from torchrl_esrl.modules.population import Mirrored, ModulePopulation, PopulationActor, es_population
 from torchrl_esrl.objectives.td3 import TD3, ForeachSoftUpdate, ManualGradTD3Loss
 from torchrl_esrl.collectors.td3_collector import make_frame_batches
-from torchrl_esrl.modules.networks import es_population
 from torchrl_esrl.objectives.td3 import make_td3
 from torchrl_esrl.run.implementation import FAST_PIECES
 

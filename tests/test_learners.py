@@ -19,7 +19,8 @@ from torchrl_esrl.collectors.td3_collector import GymTD3Collector, make_frame_ba
 from torchrl_esrl.data.multibuffer import TRANSITION_KEYS
 from torchrl_esrl.envs import EnvSizes, make_train_env
 from torchrl_esrl.errors import ConfigError
-from torchrl_esrl.modules.networks import PopulationActor, flat_parameters, make_actor
+from torchrl_esrl.modules.networks import flat_parameters, make_actor
+from torchrl_esrl.modules.population import PopulationActor
 from torchrl_esrl.objectives import DDPG, SAC, TD3, Learner, make_learner
 from torchrl_esrl.objectives.learners import LEARNERS, LearnerConfig, learner_holdings
 from torchrl_esrl.run.implementation import implementation_line, implementations

@@ -18,7 +18,8 @@ from torchrl_esrl.collectors.gym_backend import GymBackend
 from torchrl_esrl.collectors.mujoco_batch import RENDERING_KWARGS, REPRODUCED_KWARGS, MujocoBatchBackend
 from torchrl_esrl.envs import EnvSpec, as_env_spec, constructor_keywords
 from torchrl_esrl.es.openes import OpenES
-from torchrl_esrl.modules.networks import PopulationActor, flat_parameters, make_actor
+from torchrl_esrl.modules.networks import flat_parameters, make_actor
+from torchrl_esrl.modules.population import PopulationActor
 
 ENV_IDS = ["HalfCheetah-v5", "Walker2d-v5", "Ant-v5", "Swimmer-v5", "Hopper-v5"]
 TERMINATING = {"Walker2d-v5", "Ant-v5", "Hopper-v5"}
@@ -159,7 +160,7 @@ def test_mirrored_forward_gives_the_episodes_of_the_flat_rows(env_id, workers):
     """An OpenAI-ES population evaluated through its mirrored pairs plays the gym reference's
     episodes with the same forward; chunks of pairs on two workers or one chunk on one, bit for
     bit. (The pairs' forward equals the flat rows' up to float32 rounding:
-    tests/test_networks.py.)"""
+    tests/test_population.py.)"""
     steps, members = 120, 18
     policy, params = population(env_id, members, sigma=0.3)
     es = OpenES(params[0].clone(), population_size=members, sigma=0.3, generator=torch.Generator().manual_seed(4))

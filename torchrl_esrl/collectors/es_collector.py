@@ -15,7 +15,8 @@ import torch
 from torchrl_esrl.collectors.backends import backend_class, es_backend, refusals, resolve_backend
 from torchrl_esrl.collectors.generation import Generation
 from torchrl_esrl.envs import EnvSpec, as_env_spec
-from torchrl_esrl.modules.networks import Mirrored, ModulePopulation, cpu_actor, es_population
+from torchrl_esrl.modules.networks import cpu_actor
+from torchrl_esrl.modules.population import Mirrored, ModulePopulation, es_population
 from torchrl_esrl.run.implementation import chosen_pieces
 
 
@@ -33,9 +34,9 @@ class ESCollector:
         max_episode_steps: episode length limit (the env's own when None).
         seed: seeds the stream of episode seeds (one fresh reset seed per member and call).
         population: the class that computes the members' actions from their flat parameters:
-            :class:`~torchrl_esrl.modules.networks.ModulePopulation` (the reference: ``actor``
+            :class:`~torchrl_esrl.modules.population.ModulePopulation` (the reference: ``actor``
             itself through ``functional_call``) or
-            :class:`~torchrl_esrl.modules.networks.PopulationActor` (one batched forward, which
+            :class:`~torchrl_esrl.modules.population.PopulationActor` (one batched forward, which
             also reads OpenAI-ES's mirrored pairs; it refuses actors it cannot compute exactly).
     """
 

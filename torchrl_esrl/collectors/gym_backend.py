@@ -16,7 +16,7 @@ from torchrl_esrl.collectors.generation import Generation, transitions_from_arra
 from torchrl_esrl.envs import EnvSpec, as_env_spec
 from torchrl.envs.utils import step_mdp
 
-from torchrl_esrl.modules.networks import Mirrored, PopulationActor, one_blas_thread
+from torchrl_esrl.modules.population import Mirrored, PopulationActor, one_blas_thread
 from torchrl_esrl.torchrl_private import gym_env_of
 
 

@@ -41,7 +41,7 @@ from torchrl_esrl.envs import EnvSpec, as_env_spec
 from torchrl_esrl.collectors.mujoco_tasks import (
     RENDERING_KWARGS, REPRODUCED_KWARGS, TASKS, TaskRules, env_refusals, observation_layout, spec_refusals,
 )
-from torchrl_esrl.modules.networks import Mirrored, PopulationActor, one_blas_thread
+from torchrl_esrl.modules.population import Mirrored, PopulationActor, one_blas_thread
 from torchrl_esrl.threads import process_cores
 from torchrl_esrl.torchrl_private import gym_mujoco_constants
 
@@ -111,9 +111,9 @@ class MujocoBatchBackend:
     (tests/test_mujoco_batch.py). Workers never wait for each other within an episode, and a
     chunk's share of the population's parameters stays in cache between its steps.
 
-    Given the population as :class:`~torchrl_esrl.modules.networks.Mirrored` pairs (OpenAI-ES),
+    Given the population as :class:`~torchrl_esrl.modules.population.Mirrored` pairs (OpenAI-ES),
     chunks are made of whole pairs and the forward is :meth:`PopulationActor.mirrored
-    <torchrl_esrl.modules.networks.PopulationActor.mirrored>`: each pair's noise is read once per
+    <torchrl_esrl.modules.population.PopulationActor.mirrored>`: each pair's noise is read once per
     step for both members. Its actions equal the flat rows' up to float32 rounding (the rollout
     stays deterministic); the ``gym`` reference computes the same forward when given the pairs.
     """
@@ -199,7 +199,7 @@ class MujocoBatchBackend:
         order that differs from run to run, so the members' forward must be a deterministic
         function of their parameters and observation: :class:`PopulationActor` is (arithmetic
         on the flat vectors); a population with a ``nondeterminism`` method is asked
-        (:class:`~torchrl_esrl.modules.networks.ModulePopulation`: a forward that draws random
+        (:class:`~torchrl_esrl.modules.population.ModulePopulation`: a forward that draws random
         numbers or keeps state is not); any other is taken as it is."""
         if isinstance(population_actor, PopulationActor) or getattr(population_actor, "nondeterminism", None) is None:
             return None

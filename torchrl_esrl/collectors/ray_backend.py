@@ -25,7 +25,7 @@ import torch
 
 from torchrl_esrl.collectors.backends import LOCAL_BACKENDS, backend_class, resolve_backend
 from torchrl_esrl.collectors.generation import Generation
-from torchrl_esrl.modules.networks import Mirrored, PopulationActor
+from torchrl_esrl.modules.population import Mirrored, PopulationActor
 
 TRAJ_IDS = ("collector", "traj_ids")
 

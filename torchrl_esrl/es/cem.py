@@ -32,7 +32,8 @@ from torchrl_esrl.run.schema import number, positive
 import torch
 
 from torchrl_esrl.es.strategy import checked_returns, strategy_holdings
-from torchrl_esrl.modules.networks import Mirrored, flat_parameters, load_flat_parameters
+from torchrl_esrl.modules.networks import flat_parameters, load_flat_parameters
+from torchrl_esrl.modules.population import Mirrored
 from torchrl_esrl.run.capacity import Holding
 from torchrl_esrl.threads import torch_threads
 from torchrl_esrl.torchrl_private import foreach_lerp_

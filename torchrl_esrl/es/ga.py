@@ -51,7 +51,8 @@ from torch import nn
 
 from torchrl_esrl.errors import ConfigError
 from torchrl_esrl.es.strategy import checked_returns
-from torchrl_esrl.modules.networks import Mirrored, actor_parameters, flat_parameters
+from torchrl_esrl.modules.networks import actor_parameters, flat_parameters
+from torchrl_esrl.modules.population import Mirrored
 from torchrl_esrl.run.capacity import Holding, bytes_per_transition, network_holding, population_holdings
 from torchrl_esrl.run.schema import count, number, positive
 

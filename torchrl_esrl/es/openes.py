@@ -12,7 +12,8 @@ from __future__ import annotations
 import torch
 
 from torchrl_esrl.es.strategy import checked_returns, strategy_holdings
-from torchrl_esrl.modules.networks import Mirrored, flat_parameters
+from torchrl_esrl.modules.networks import flat_parameters
+from torchrl_esrl.modules.population import Mirrored
 from torchrl_esrl.run.capacity import Holding
 
 
@@ -95,7 +96,7 @@ class OpenES:
         """``population``, the last :meth:`ask`'s, as mirrored pairs ``mean +- sigma * eps`` (the
         same float32 rows: ``sigma * -eps`` is ``-(sigma * eps)`` exactly); None when not
         antithetic or for any other population. Backends use it to read each pair's noise once
-        (:class:`~torchrl_esrl.modules.networks.Mirrored`)."""
+        (:class:`~torchrl_esrl.modules.population.Mirrored`)."""
         if not self.antithetic or not self._asked(population):
             return None
         return Mirrored(self._center, self.sigma * self._noise[: self.population_size // 2])

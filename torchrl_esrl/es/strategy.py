@@ -19,7 +19,8 @@ from typing import Protocol, runtime_checkable
 
 import torch
 
-from torchrl_esrl.modules.networks import NETWORK_FIELD, Mirrored, actor_parameters
+from torchrl_esrl.modules.networks import NETWORK_FIELD, actor_parameters
+from torchrl_esrl.modules.population import Mirrored
 from torchrl_esrl.run.capacity import Holding, bytes_per_transition, network_holding, population_holdings
 
 

@@ -60,7 +60,7 @@ def implementations(cfg: DictConfig, **components) -> dict[str, str]:
     from torchrl_esrl.collectors.mujoco_batch import MujocoBatchBackend
     from torchrl_esrl.collectors.td3_collector import GymTD3Collector, TD3EnvState, _refusal
     from torchrl_esrl.data.multibuffer import MultiBuffer
-    from torchrl_esrl.modules.networks import PopulationActor
+    from torchrl_esrl.modules.population import PopulationActor
     from torchrl_esrl.objectives.learner import Learner
 
     asked = fast_pieces(cfg)
