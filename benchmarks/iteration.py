@@ -48,6 +48,7 @@ from torchrl_esrl.envs import make_train_env
 from torchrl_esrl.es.openes import make_es
 from torchrl_esrl.modules.networks import flat_parameters, make_actor_critic
 from torchrl_esrl.objectives.td3 import make_td3
+from torchrl_esrl.run.algorithm_info import load_recipe
 from torchrl_esrl.run.implementation import FAST_PIECES
 from torchrl_esrl.run.determinism import seed_everything
 from torchrl_esrl.algorithm.td3_phase import td3_phase
@@ -72,6 +73,7 @@ assert set(PIECE_PARTS) == set(FAST_PIECES), "every fast piece has its parts"
 def paper_config(env: str = "halfcheetah", capacity: int | None = None, max_episode_steps: int | None = None):
     """conf/config.yaml's paper values; ``capacity`` (and K with it, if smaller) and
     ``max_episode_steps`` shrink a smoke run."""
+    load_recipe(ROOT / "recipes" / "es_td3.py")  # registers conf/config.yaml's schema (recipe_main), which the config lists first
     with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
         cfg = compose("config", overrides=[f"env={env}", "logger.progress=false"])
     if capacity:
