@@ -73,3 +73,21 @@ def test_timing_and_runs_tables_give_the_net_seconds_with_the_held_beside(tmp_pa
     write_runs_table([held, short], tmp_path, ALGORITHMS)
     rows = [line for line in (tmp_path / "runs.md").read_text().splitlines() if line.startswith("| Walker2d-v5")]
     assert rows[0].endswith("| 36.8 | 18.8 |") and rows[1].endswith("| 45.3 | - |")  # (3,335 - 1,130) / 60; 2,716 / 60
+
+
+def test_the_runs_table_gives_the_learner_copies_of_a_run_that_makes_them(tmp_path):
+    """A run that copies its learner into its population (ERL) logs cumulative counters; the runs table gives
+    their last values, and only where some run logs them."""
+    from torchrl_esrl.report.records import find_runs
+
+    erl = find_runs([ROOT / "docs" / "results" / "runs" / "table1" / "walker2d" / "erl_seed0"])
+    cem = find_runs([ROOT / "docs" / "results" / "runs" / "table1" / "walker2d" / "cem_seed0"])
+    last = erl[0]["metrics"][-1]
+    write_runs_table(erl + cem, tmp_path, ALGORITHMS)
+    table = (tmp_path / "runs.md").read_text().splitlines()
+    assert "learner copied in (as elite)" in table[0] and len(table[0].split("|")) == len(table[1].split("|"))
+    erl_row = next(line for line in table if "| ERL |" in line)
+    assert f"| {int(float(last['injections']))} ({int(float(last['injected_elites']))}) |" in erl_row
+    assert "| - | - | - |" in next(line for line in table if "| CEM |" in line)  # TD3 actor, overwrites, copies
+    write_runs_table(cem, tmp_path, ALGORITHMS)
+    assert "copied" not in (tmp_path / "runs.md").read_text()

@@ -318,6 +318,15 @@ def write_aggregate_table(rows: list[dict], runs: list[dict], out_dir: Path, alg
 
 RUN_COLUMNS = ("env", "algorithm", "ratio", "seed", "final_return", "final_td3_actor_return", "overwrites", "td3_frames", "es_frames",
                "td3_updates", "first_td3_update", "wall_time_s", "held_s", "wall_time_net_s", "wall_time_net_low_s", "dir")
+# The counters of a run that copies its learner into its population (metrics.csv, cumulative): the copies, and
+# those that scored among the population's elites in the generation after their copy.
+COPY_COLUMNS = ("injections", "injected_elites")
+
+
+def learner_copies(metrics: list[dict]) -> dict:
+    """``COPY_COLUMNS`` at the run's last row (``""`` for a run that logs none)."""
+    last = metrics[-1] if metrics else {}
+    return {key: int(float(last[key])) if last.get(key) not in (None, "") else "" for key in COPY_COLUMNS}
 
 
 def first_td3_update(metrics: list[dict]) -> int | str:
@@ -339,26 +348,34 @@ def write_runs_table(runs: list[dict], out_dir: Path, algorithms: Algorithms) ->
         low, high = time.clock_net or ("", "")
         rows.append({**{key: s.get(key, "") for key in RUN_COLUMNS}, "ratio": ratio_text(s), "dir": str(run["dir"]),
                      "first_td3_update": first_td3_update(run["metrics"]), "held_s": time.held, "wall_time_net_s": high, "wall_time_net_low_s": low,
-                     "net_minutes": net_minutes_text(time)})
+                     "net_minutes": net_minutes_text(time), **learner_copies(run["metrics"])})
     rows.sort(key=lambda r: (r["env"], r["algorithm"], r["ratio"], r["seed"]))
+    copies = any(r["injections"] != "" for r in rows)  # the column only where a run copies its learner in
+    columns = (*RUN_COLUMNS, *COPY_COLUMNS) if copies else RUN_COLUMNS
     csv_path, md_path = out_dir / "runs.csv", out_dir / "runs.md"
-    write_csv(csv_path, RUN_COLUMNS, [{key: r[key] for key in RUN_COLUMNS} for r in rows])
+    write_csv(csv_path, columns, [{key: r[key] for key in columns} for r in rows])
 
     def number(value, digits=1):
         return f"{value:.{digits}f}" if isinstance(value, (int, float)) else "-"
 
+    copy_header = "| learner copied in (as elite) " if copies else ""
     lines = [
-        "| env | algorithm | seed | final return | TD3 actor | overwrites | TD3 frames | ES frames | TD3 updates | first TD3 update (iteration) "
-        "| training clock net of holds (min) | held (min) |",
-        "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
+        f"| env | algorithm | seed | final return | TD3 actor | overwrites {copy_header}| TD3 frames | ES frames | TD3 updates "
+        "| first TD3 update (iteration) | training clock net of holds (min) | held (min) |",
+        "|---|---|---:|---:|---:|---:|" + "---:|" * (6 + copies),
     ]
     for r in rows:
         overwrites = r["overwrites"] if r["overwrites"] != "" else "-"
+        copied = "" if not copies else f"{r['injections']} ({r['injected_elites']}) | " if r["injections"] != "" else "- | "
         lines.append(
             f"| {r['env']} | {algorithms.label(r['algorithm'], r['ratio'])} | {r['seed']} | {number(r['final_return'])} | "
-            f"{number(r['final_td3_actor_return'])} | {overwrites} | {r['td3_frames']} | {r['es_frames']} | "
+            f"{number(r['final_td3_actor_return'])} | {overwrites} | {copied}{r['td3_frames']} | {r['es_frames']} | "
             f"{r['td3_updates'] if r['td3_updates'] != '' else '-'} | {r['first_td3_update'] or '-'} | {r['net_minutes']} | {number(r['held_s'] / 60) if r['held_s'] else '-'} |"
         )
+    if copies:
+        lines += ["", "Learner copied in: how often the run copied its learner over the weakest member of its population; in brackets, the "
+                      "copies that scored among the population's elites in the generation that played them (`metrics.csv`'s "
+                      "`injections`, `injected_elites`)."]
     held = [r for r in rows if r["held_s"]]
     if held:
         lines += ["", f"Training clock: `summary.json`'s `wall_time_s` less the holds of `pauses.txt` placed in it; a range where a hold fell where the records "
