@@ -44,6 +44,7 @@ from torchrl_esrl.modules.networks import make_actor, make_critic
 from torchrl_esrl.modules.population import PopulationActor, one_blas_thread
 from torchrl_esrl.objectives import mlp_chain_rule as chain
 from torchrl_esrl.objectives.td3 import TD3
+from torchrl_esrl.threads import torch_threads
 
 BATCH, HIDDEN, POLICY_DELAY = 256, 256, 2
 
@@ -121,8 +122,8 @@ def td3_bounds(env_id: str, repeats: int, calls: int, capacity: int) -> dict:
 
     def on(threads, fn):
         def call():
-            torch.set_num_threads(threads)
-            fn()
+            with torch_threads(threads):
+                fn()
         return call
 
     methods = {}
@@ -186,12 +187,12 @@ def es_bounds(env_id: str, steps: int, repeats: int, members: int = 120, cores: 
                     matrix @ ones
 
     rounds = {name: [] for name in ("physics", "forward", "read_offsets")}
-    torch.set_num_threads(1)
-    for _ in range(repeats):
-        for name, fn in (("physics", physics), ("forward", forward), ("read_offsets", read_offsets)):
-            start = time.perf_counter()
-            fn()
-            rounds[name].append((time.perf_counter() - start) / steps)
+    with torch_threads(1):
+        for _ in range(repeats):
+            for name, fn in (("physics", physics), ("forward", forward), ("read_offsets", read_offsets)):
+                start = time.perf_counter()
+                fn()
+                rounds[name].append((time.perf_counter() - start) / steps)
     per_step = {name: float(np.median(values)) for name, values in rounds.items()}
     return {
         "env": env_id, "pairs": pairs, "steps": steps, "frame_skip": env.frame_skip,

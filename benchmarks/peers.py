@@ -22,7 +22,8 @@ Each implementation first fills its buffer with ``--prefill`` frames (the peers 
 actions, as their programs start; ours acting, as the paper run does), untimed, and plays one
 untimed round. Then ``--repeats`` rounds, each running ``--frames`` learning frames of every method
 in turn, so that the machine's
-drift falls on all alike; the peers run on torch's default thread count. Per method: ms per frame
+drift falls on all alike; every implementation runs on the job's cores (``torchrl_esrl.threads.job_cores``, what
+``td3.num_threads=null`` gives ours). Per method: ms per frame
 (median of the rounds, and every round), ``speedup_vs_<method>`` = that method's time / ours,
 ``best_peer`` and ours against it; each implementation's TD3 values and network sizes as built,
 its last critic loss and whether its actor and critic parameters moved in the rounds; the load
@@ -55,7 +56,7 @@ from torchrl_esrl.envs import make_train_env, quiet_logs
 from torchrl_esrl.modules.networks import ACTIVATIONS, make_actor_critic
 from torchrl_esrl.objectives.td3 import make_td3
 from torchrl_esrl.run.determinism import seed_everything
-from torchrl_esrl.threads import torch_threads
+from torchrl_esrl.threads import job_cores, torch_threads
 
 PEERS = ("cleanrl_style", "torchrl_stock")
 
@@ -200,7 +201,7 @@ def on_threads(threads: int | None, fn):
 
 
 def measure(env_id: str, frames: int, repeats: int, prefill: int, capacity: int) -> dict:
-    default_threads = torch.get_num_threads()
+    default_threads = job_cores()  # a fresh process's torch default here; ours' td3.num_threads=null is the same
     cfg = paper_config(env_groups()[env_id], capacity)
     cfg.buffer.min_size = prefill
     implementations = {"ours": Ours(cfg, prefill), "cleanrl_style": CleanRLStyle(cfg, prefill, capacity), "torchrl_stock": TorchRLStock(cfg, prefill, capacity)}

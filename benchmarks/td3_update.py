@@ -45,6 +45,7 @@ from torchrl.data import Bounded
 from torchrl_esrl.data.multibuffer import MultiBuffer
 from torchrl_esrl.modules.networks import make_actor, make_critic
 from torchrl_esrl.objectives.td3 import TD3, ForeachSoftUpdate, ManualGradTD3Loss
+from torchrl_esrl.threads import torch_threads
 
 FAST_TD3 = {"loss_class": ManualGradTD3Loss, "target_update_class": ForeachSoftUpdate, "optimizer_impl": "fused"}  # make_td3's fast pieces
 
@@ -114,8 +115,8 @@ def run(capacity: int = 1_000_000, repeats: int = 7, calls: int = 50, env_id: st
 
     def threads(n, fn):
         def call():
-            torch.set_num_threads(n)
-            fn()
+            with torch_threads(n):
+                fn()
 
         return call
 

@@ -15,7 +15,8 @@ def test_a_few_frames_of_each_implementation_learn_with_the_same_td3(tmp_path):
     peers.main(["--quick", "--envs", "Walker2d-v5", "--frames", "3", "--repeats", "1", "--prefill", "256", "--out", str(out)])
     report = json.loads(out.read_text())
     r = report["envs"]["Walker2d-v5"]
-    threads = report["machine"]["torch_threads"]  # torch's default, restored after every method
+    threads = r["methods"]["cleanrl_style"]["torch_threads"]  # the job's cores, whatever torch was left at
+    assert threads == r["methods"]["torchrl_stock"]["torch_threads"] == r["methods"]["ours"]["torch_threads"]
     assert set(r["methods"]) == {*IMPLEMENTATIONS, "plain_update_1thread", *([f"plain_update_{threads}threads"] if threads > 1 else [])}
     for name, method in r["methods"].items():
         assert method["ms_per_frame"] > 0 and len(method["rounds_ms_per_frame"]) == 1 and method["torch_threads"] >= 1
