@@ -33,7 +33,9 @@
 # lands), with timing.txt: one line per attempt (exit status, seconds of the command, the commit it ran
 # on, its start (UTC), the mean and largest 1-minute load average over it, sampled every 2 s; a
 # started-over run's earlier attempts first, marked "(started over)"), so a resumed run's wall-clock is
-# the sum of its lines; pauses.txt where scripts/pause_runs.sh held the run (its seconds include the held
+# the sum of its lines; an attempt killed with its script or session has its line too, marked "exit killed",
+# from <run_dir>.alive, which holds the running attempt's line, rewritten every 2 s, and which the next attempt
+# folds into timing.txt; pauses.txt where scripts/pause_runs.sh held the run (its seconds include the held
 # time, which recipes/report.py subtracts: timing.md); run.log, the run's own log (each iteration's end,
 # UTC, and the training clock then, which places the holds); and arithmetic.txt where its kept attempts
 # ran on more than one commit (scripts/arithmetic_record.sh). A recorded run's checkpoints are then deleted
@@ -115,6 +117,9 @@ run_one() {
   dest=$RESULTS/$env/$name
   dir=$WORK/$env/$name
   if [ -f "$dest/summary.json" ]; then echo "$env $name: recorded, skipped"; return 0; fi
+  if [ -f "$dir.alive" ]; then  # an attempt killed with its script or session: its line as it last stood
+    mkdir -p "$dir" && cat "$dir.alive" >> "$dir/timing.txt" && rm -f "$dir.alive"
+  fi
   if [ ! -f "$dir/summary.json" ]; then
     earlier=
     if [ -d "$dir" ] && ! compgen -G "$dir/checkpoints/checkpoint-*" > /dev/null; then  # killed before any checkpoint: start over
@@ -128,18 +133,23 @@ run_one() {
     TORCHRL_ESRL_JOBS=$JOBS "$PYTHON" "recipes/$recipe" env="$env" experiment="$PRESET" seed="$seed" "$@" $EXTRA \
       logger.progress=false hydra.run.dir="$dir" > "$dir.log" 2>&1 &
     pid=$! sum=0 count=0 peak=0
+    line() {  # this attempt's timing line: exit status $1
+      local mean=$((sum / (count > 0 ? count : 1)))
+      printf '%s: exit %s after %s s on commit %s started %s load_mean %d.%02d load_max %d.%02d\n' "$env $name" "$1" "$(( $(date +%s) - start ))" \
+        "$commit" "$started" $((mean / 100)) $((mean % 100)) $((peak / 100)) $((peak % 100))
+    }
     while kill -0 "$pid" 2> /dev/null; do  # the machine's 1-minute load average, in hundredths, every 2 s
       load=$(cut -d' ' -f1 /proc/loadavg | tr -d .) load=$((10#$load))
       sum=$((sum + load)) count=$((count + 1)) peak=$((load > peak ? load : peak))
+      line killed > "$dir.alive.tmp" && mv "$dir.alive.tmp" "$dir.alive"
       sleep 2
     done
     wait "$pid"
     status=$?
-    mean=$((sum / (count > 0 ? count : 1)))
     mkdir -p "$dir"
     if [ -n "$earlier" ]; then printf '%s\n' "$earlier" | sed '/(started over)$/!s/$/ (started over)/' >> "$dir/timing.txt"; fi
-    printf '%s: exit %s after %s s on commit %s started %s load_mean %d.%02d load_max %d.%02d\n' "$env $name" "$status" "$(( $(date +%s) - start ))" \
-      "$commit" "$started" $((mean / 100)) $((mean % 100)) $((peak / 100)) $((peak % 100)) | tee -a "$WORK/timings.txt" >> "$dir/timing.txt"
+    line "$status" | tee -a "$WORK/timings.txt" >> "$dir/timing.txt"
+    rm -f "$dir.alive"
   fi
   [ -f "$dir/summary.json" ] || return 1
   mkdir -p "$dest"

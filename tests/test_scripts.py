@@ -29,6 +29,8 @@ def test_experiment_set_starts_over_a_run_without_a_checkpoint_records_it_delete
     (killed / "checkpoints" / ".checkpoint-000000000001.tmp").mkdir(parents=True)
     (killed / "metrics.csv").write_text("iteration,td3_frames\n0,0\n")
     (killed / "timing.txt").write_text("swimmer es_seed0: exit 137 after 15 s on commit abc\n")
+    alive = "swimmer es_seed0: exit killed after 20 s on commit def started 2026-01-01T00:10:00Z load_mean 1.00 load_max 1.50"
+    (work / "swimmer" / "es_seed0.alive").write_text(alive + "\n")  # an attempt that ended with its script: its last line
     first = call()
     assert first.returncode == 0, first.stdout + first.stderr
     record = results / "swimmer" / "es_seed0"
@@ -36,8 +38,9 @@ def test_experiment_set_starts_over_a_run_without_a_checkpoint_records_it_delete
     assert (record / "pauses.txt").read_text() == held
     assert json.loads((record / "summary.json").read_text())["env"] == "Swimmer-v5"
     commit = subprocess.run(["git", "rev-parse", "HEAD"], cwd=ROOT, capture_output=True, text=True).stdout.strip()
-    started_over, attempt = (record / "timing.txt").read_text().splitlines()  # the killed attempt, marked, then the run
+    started_over, ended_with_script, attempt = (record / "timing.txt").read_text().splitlines()  # the killed attempts, marked, then the run
     assert started_over == "swimmer es_seed0: exit 137 after 15 s on commit abc (started over)"
+    assert ended_with_script == alive + " (started over)" and not (work / "swimmer" / "es_seed0.alive").exists()
     words = attempt.split()
     assert attempt.startswith("swimmer es_seed0: exit 0 after ") and words[words.index("commit") + 1] == commit
     assert words[words.index("started") + 1].endswith("Z") and float(words[words.index("load_max") + 1]) >= float(words[words.index("load_mean") + 1]) > 0
@@ -47,7 +50,7 @@ def test_experiment_set_starts_over_a_run_without_a_checkpoint_records_it_delete
     assert (run_dir / "summary.json").exists() and not (run_dir / "checkpoints").exists()
     second = call()
     assert second.returncode == 0 and "swimmer es_seed0: recorded, skipped" in second.stdout
-    assert len((record / "timing.txt").read_text().splitlines()) == 2
+    assert len((record / "timing.txt").read_text().splitlines()) == 3
 
 
 def test_paper_run_records_each_piece_a_killed_one_too_and_never_reruns_a_finished_run(tmp_path):
