@@ -26,7 +26,7 @@ from __future__ import annotations
 import argparse
 import time
 
-from benchmarks.common import SHAPES, fill, interleaved, save_report  # sets OMP_WAIT_POLICY, first
+from benchmarks.common import SHAPES, fill, interleaved, on_threads, save_report  # sets OMP_WAIT_POLICY, first
 
 import gymnasium as gym
 import mujoco
@@ -120,19 +120,13 @@ def td3_bounds(env_id: str, repeats: int, calls: int, capacity: int) -> dict:
 
     products, products_bf16 = products_in(torch.float32), products_in(torch.bfloat16)
 
-    def on(threads, fn):
-        def call():
-            with torch_threads(threads):
-                fn()
-        return call
-
     methods = {}
     for threads in (1, 2):
-        methods[f"plain_{threads}threads"] = on(threads, lambda: plain.update(buffer.sample()))
-        methods[f"loop_{threads}threads"] = on(threads, lambda: fast.update(buffer.sample()))
-        methods[f"products_{threads}threads"] = on(threads, products)
-        methods[f"loop_bf16_{threads}threads"] = on(threads, lambda: fast_bf16.update(buffer.sample()))
-        methods[f"products_bf16_{threads}threads"] = on(threads, products_bf16)
+        methods[f"plain_{threads}threads"] = on_threads(threads, lambda: plain.update(buffer.sample()))
+        methods[f"loop_{threads}threads"] = on_threads(threads, lambda: fast.update(buffer.sample()))
+        methods[f"products_{threads}threads"] = on_threads(threads, products)
+        methods[f"loop_bf16_{threads}threads"] = on_threads(threads, lambda: fast_bf16.update(buffer.sample()))
+        methods[f"products_bf16_{threads}threads"] = on_threads(threads, products_bf16)
     timings = interleaved(methods, calls=calls, repeats=repeats, warmup=10)
     torch.manual_seed(0)
     plain_flops = flops_per_update(lambda td3=PlainTD3(obs_dim, act_dim), batch=buffer.sample(): td3.update(batch))

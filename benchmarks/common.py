@@ -50,6 +50,17 @@ def fill(buffer, n: int, obs_dim: int, act_dim: int, chunk: int = 100_000, name:
         buffer.extend(data) if name is None else buffer.extend(data, name)
 
 
+def on_threads(threads: int | None, fn: Callable[[], None]) -> Callable[[], None]:
+    """``fn`` as a method of :func:`interleaved` that runs on ``threads`` torch threads (None: as it
+    finds them) and leaves the count as it was."""
+    from torchrl_esrl.threads import torch_threads
+
+    def call():
+        with torch_threads(threads):
+            fn()
+    return call
+
+
 def interleaved(methods: Mapping[str, Callable[[], None]], calls: int, repeats: int, warmup: int = 3) -> dict[str, dict]:
     """Seconds per call of each method: ``repeats`` rounds, each timing ``calls`` calls of every
     method in turn; median and all rounds reported."""

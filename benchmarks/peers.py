@@ -39,7 +39,7 @@ from __future__ import annotations
 import argparse
 import os
 
-from benchmarks.common import fill, interleaved, save_report  # sets OMP_WAIT_POLICY, first
+from benchmarks.common import fill, interleaved, on_threads, save_report  # sets OMP_WAIT_POLICY, first
 
 import gymnasium as gym
 import torch
@@ -56,7 +56,7 @@ from torchrl_esrl.envs import make_train_env, quiet_logs
 from torchrl_esrl.modules.networks import ACTIVATIONS, make_actor_critic
 from torchrl_esrl.objectives.td3 import make_td3
 from torchrl_esrl.run.determinism import seed_everything
-from torchrl_esrl.threads import job_cores, torch_threads
+from torchrl_esrl.threads import job_cores
 
 PEERS = ("cleanrl_style", "torchrl_stock")
 
@@ -191,13 +191,6 @@ class TorchRLStock(Peer):
 
     def shutdown(self) -> None:
         self.program.shutdown()
-
-
-def on_threads(threads: int | None, fn):
-    def call():
-        with torch_threads(threads):
-            fn()
-    return call
 
 
 def measure(env_id: str, frames: int, repeats: int, prefill: int, capacity: int) -> dict:

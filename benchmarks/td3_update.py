@@ -35,7 +35,7 @@ import sys
 if "--omp-passive" in sys.argv:  # before torch loads
     os.environ["BENCHMARKS_OMP_PASSIVE"] = "1"
 
-from benchmarks.common import SHAPES, fill, interleaved, save_report  # sets OMP_WAIT_POLICY, first
+from benchmarks.common import SHAPES, fill, interleaved, on_threads, save_report  # sets OMP_WAIT_POLICY, first
 
 import torch
 import torch.nn.functional as F
@@ -45,7 +45,6 @@ from torchrl.data import Bounded
 from torchrl_esrl.data.multibuffer import MultiBuffer
 from torchrl_esrl.modules.networks import make_actor, make_critic
 from torchrl_esrl.objectives.td3 import TD3, ForeachSoftUpdate, ManualGradTD3Loss
-from torchrl_esrl.threads import torch_threads
 
 FAST_TD3 = {"loss_class": ManualGradTD3Loss, "target_update_class": ForeachSoftUpdate, "optimizer_impl": "fused"}  # make_td3's fast pieces
 
@@ -113,21 +112,14 @@ def run(capacity: int = 1_000_000, repeats: int = 7, calls: int = 50, env_id: st
         def backward(self, loss, optimizer):
             loss.backward()
 
-    def threads(n, fn):
-        def call():
-            with torch_threads(n):
-                fn()
-
-        return call
-
     methods = {
-        "plain": threads(1, plain()),
-        "plain_2threads": threads(2, plain()),
-        "plain_fused": threads(1, plain(fused=True)),
-        "torchrl_stock": threads(1, torchrl()),
-        "torchrl_fast": threads(1, torchrl(**FAST_TD3)),
-        "torchrl_fast_2threads": threads(2, torchrl(**FAST_TD3)),
-        "torchrl_fast_engine_2threads": threads(2, torchrl(EngineTD3, **FAST_TD3)),
+        "plain": on_threads(1, plain()),
+        "plain_2threads": on_threads(2, plain()),
+        "plain_fused": on_threads(1, plain(fused=True)),
+        "torchrl_stock": on_threads(1, torchrl()),
+        "torchrl_fast": on_threads(1, torchrl(**FAST_TD3)),
+        "torchrl_fast_2threads": on_threads(2, torchrl(**FAST_TD3)),
+        "torchrl_fast_engine_2threads": on_threads(2, torchrl(EngineTD3, **FAST_TD3)),
     }
     timings = interleaved(methods, calls=calls, repeats=repeats, warmup=10)
     base = timings["plain"]["s_per_call"]
