@@ -12,6 +12,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 from tensordict import TensorDict
 
@@ -42,34 +43,36 @@ class Generation:
 
 
 def transitions_from_arrays(obs, actions, next_obs, rewards, terminated, truncated, lengths, returns) -> TensorDict:
-    """Flatten padded ``[P, T, ...]`` numpy arrays into the TorchRL transition layout (real steps only)."""
-    population, horizon = rewards.shape
-    lengths_t = torch.as_tensor(lengths, dtype=torch.long)
-    valid = torch.arange(horizon)[None, :] < lengths_t[:, None]  # [P, T]
-    members = torch.arange(population)[:, None].expand(population, horizon)[valid]
+    """Flatten padded ``[P, T, ...]`` numpy arrays into the TorchRL transition layout (real steps only).
+
+    One gather of the real rows per array (member ``p``'s steps ``0..lengths[p]-1``, member after
+    member): the work grows with the steps played, not with the padded horizon."""
+    lengths = np.asarray(lengths, dtype=np.int64)
+    members = np.repeat(np.arange(len(lengths)), lengths)
+    steps = np.arange(len(members)) - np.repeat(np.cumsum(lengths) - lengths, lengths)
 
     def take(array, dtype):
-        return torch.as_tensor(array)[valid].to(dtype)
+        return torch.from_numpy(np.asarray(array)[members, steps].astype(dtype, copy=False))
 
-    reward = take(rewards, torch.float32).unsqueeze(-1)
-    term = take(terminated, torch.bool).unsqueeze(-1)
-    trunc = take(truncated, torch.bool).unsqueeze(-1)
-    n = reward.shape[0]
+    reward = take(rewards, np.float32).unsqueeze(-1)
+    term = take(terminated, np.bool_).unsqueeze(-1)
+    trunc = take(truncated, np.bool_).unsqueeze(-1)
+    members_t = torch.from_numpy(members)
     return TensorDict(
         {
-            "observation": take(obs, torch.float32),
-            "action": take(actions, torch.float32),
+            "observation": take(obs, np.float32),
+            "action": take(actions, np.float32),
             "next": {
-                "observation": take(next_obs, torch.float32),
+                "observation": take(next_obs, np.float32),
                 "reward": reward,
                 "done": term | trunc,
                 "terminated": term,
                 "truncated": trunc,
             },
-            "episode_return": torch.as_tensor(returns, dtype=torch.float32)[members].unsqueeze(-1),
-            "collector": {"traj_ids": members},
+            "episode_return": torch.as_tensor(returns, dtype=torch.float32)[members_t].unsqueeze(-1),
+            "collector": {"traj_ids": members_t},
         },
-        batch_size=[n],
+        batch_size=[len(members)],
     )
 
 
