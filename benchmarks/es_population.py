@@ -16,11 +16,18 @@ one run for:
              recorded actions, until its recorded length (physics of the very trajectories the
              evaluation played, the ceiling for it; ``raw`` steps other states, with other contacts,
              and never stops early)
+  chunks_of_N_pairs  (``--chunk-sweep N ...``) the batched backend with chunks of about N pairs each:
+             smaller chunks keep a chunk's offsets in a core's cache, larger ones pay the per-step
+             bookkeeping fewer times; the record says whether they played the batched run's
+             episodes bit for bit
   serial     one gymnasium env, offspring after offspring, torch forward per step with the
              offspring's weights loaded into an actor
   lockstep   the reference ``gym`` backend (P gymnasium envs, one batched forward per step)
 
-Usage: ``python -m benchmarks.es_population [--quick] [--sweep] [--out PATH]``.
+Usage: ``python -m benchmarks.es_population [--quick] [--sweep] [--chunk-sweep PAIRS ...] [--out PATH]``.
+Each run records wall-clock steps/s and the process's CPU time per step (``cpu_us_per_step``; the
+printed ``cpu: raw/it`` is raw's over the method's): on a machine shared with other work, compare
+variants by the latter, within one run.
 
 OpenMP threads that spin after a torch forward steal the cores MuJoCo's batch threads need next.
 ``OMP_WAIT_POLICY`` is read when torch loads, so it is set here, before the import, unless the
@@ -67,12 +74,18 @@ def make_population(env_id: str, members: int, sigma: float = 0.005, seed: int =
     return actor, params, es.mirrored(params)
 
 
+def timed(steps: int, seconds: float, cpu_seconds: float) -> dict:
+    """A run's figures: wall-clock steps/s, and this process's CPU time per step (threads that wait
+    cost none of it, so it moves less than wall time on a machine shared with other work)."""
+    return {"steps": steps, "seconds": seconds, "steps_per_s": steps / seconds, "cpu_us_per_step": 1e6 * cpu_seconds / steps}
+
+
 def time_backend(backend, params, seeds, mirrored=None) -> dict:
-    start = time.perf_counter()
+    start, cpu = time.perf_counter(), time.process_time()
     generation = backend.rollout(params, seeds, mirrored=mirrored)
-    seconds = time.perf_counter() - start
-    return {"steps": generation.frames, "seconds": seconds, "steps_per_s": generation.frames / seconds,
-            "mean_return": float(generation.returns.mean()), "mean_length": float(generation.lengths.float().mean())}
+    seconds, cpu_seconds = time.perf_counter() - start, time.process_time() - cpu
+    return timed(generation.frames, seconds, cpu_seconds) | {
+        "mean_return": float(generation.returns.mean()), "mean_length": float(generation.lengths.float().mean())}
 
 
 def initial_batch(env, seeds, nthread: int) -> mujoco.batch.Batch:
@@ -93,24 +106,22 @@ def time_raw_physics(env_id: str, members: int, steps: int, seeds, nthread: int)
     batch = initial_batch(env, seeds, nthread)
     rng = np.random.default_rng(0)
     batch.bind("ctrl")[:] = rng.uniform(-0.5, 0.5, (members, env.model.nu))
-    start = time.perf_counter()
+    start, cpu = time.perf_counter(), time.process_time()
     for _ in range(steps):
         batch.step(nstep=env.frame_skip)
-    seconds = time.perf_counter() - start
-    return {"steps": members * steps, "seconds": seconds, "steps_per_s": members * steps / seconds}
+    return timed(members * steps, time.perf_counter() - start, time.process_time() - cpu)
 
 
 def time_raw_replay(env_id: str, generation, seeds, nthread: int) -> dict:
     """mujoco.batch stepping alone, replaying ``generation`` (:func:`replay`)."""
-    _, seconds = replay(env_id, generation, seeds, nthread)
-    steps = int(generation.lengths.sum())
-    return {"steps": steps, "seconds": seconds, "steps_per_s": steps / seconds}
+    _, seconds, cpu_seconds = replay(env_id, generation, seeds, nthread)
+    return timed(int(generation.lengths.sum()), seconds, cpu_seconds)
 
 
-def replay(env_id: str, generation, seeds, nthread: int) -> tuple[mujoco.batch.Batch, float]:
+def replay(env_id: str, generation, seeds, nthread: int) -> tuple[mujoco.batch.Batch, float, float]:
     """Steps ``generation``'s episodes again on one mujoco.batch: gymnasium's initial states, then
     each member's recorded actions, the live members only, until each one's recorded length. The
-    batch as it ends (each member in its last state) and the seconds of the stepping."""
+    batch as it ends (each member in its last state), and the wall and CPU seconds of the stepping."""
     env = gym.make(env_id).unwrapped
     members = len(seeds)
     lengths = generation.lengths.numpy()
@@ -120,12 +131,12 @@ def replay(env_id: str, generation, seeds, nthread: int) -> tuple[mujoco.batch.B
     actions[member_of, step_of] = generation.transitions.get("action").numpy()
     batch = initial_batch(env, seeds, nthread)
     ctrl = batch.bind("ctrl")
-    start = time.perf_counter()
+    start, cpu = time.perf_counter(), time.process_time()
     for t in range(int(lengths.max())):
         live = np.flatnonzero(lengths > t)
         ctrl[live] = actions[live, t]
         batch.step(ids=None if len(live) == members else live, nstep=env.frame_skip)
-    return batch, time.perf_counter() - start
+    return batch, time.perf_counter() - start, time.process_time() - cpu
 
 
 @torch.no_grad()
@@ -135,7 +146,7 @@ def time_serial(env_id: str, actor, params, seeds, steps: int) -> dict:
     mlp = actor[0].module
     low, high = actor[1].action_low, actor[1].action_high
     total = 0
-    start = time.perf_counter()
+    start, cpu = time.perf_counter(), time.process_time()
     for p, seed in enumerate(seeds):
         load_flat_parameters(actor, params[p])
         obs, _ = env.reset(seed=int(seed))
@@ -146,8 +157,7 @@ def time_serial(env_id: str, actor, params, seeds, steps: int) -> dict:
             total += 1
             if term or trunc:
                 break
-    seconds = time.perf_counter() - start
-    return {"steps": total, "seconds": seconds, "steps_per_s": total / seconds}
+    return timed(total, time.perf_counter() - start, time.process_time() - cpu)
 
 
 def interleaved_runs(repeats: int, measures: dict) -> dict:
@@ -164,7 +174,15 @@ def interleaved_runs(repeats: int, measures: dict) -> dict:
     return out
 
 
-def run(env_id: str, members: int, steps: int, nthread: int, sweep: bool, repeats: int = 1, skip_slow: bool = False) -> dict:
+def chunked_backend(env_id: str, policy, steps: int, nthread: int, pairs: int, members: int) -> MujocoBatchBackend:
+    """The batched backend with its two workers playing chunks of about ``pairs`` mirrored pairs."""
+    backend = MujocoBatchBackend(env_id, policy, max_episode_steps=steps, nthread=nthread, min_chunk=1)
+    backend.chunks_per_worker = max(1, -(-(members // 2) // pairs) // len(backend.workers))
+    return backend
+
+
+def run(env_id: str, members: int, steps: int, nthread: int, sweep: bool, repeats: int = 1, skip_slow: bool = False,
+        chunk_pairs: tuple[int, ...] = ()) -> dict:
     actor, params, mirrored = make_population(env_id, members)
     policy = PopulationActor(actor)
     seeds = list(range(1000, 1000 + members))
@@ -181,10 +199,19 @@ def run(env_id: str, members: int, steps: int, nthread: int, sweep: bool, repeat
         "raw": lambda: time_raw_physics(env_id, members, steps, seeds, nthread),
         "raw_replay": lambda: time_raw_replay(env_id, played, seeds, nthread),
     }
+    chunked = {pairs: chunked_backend(env_id, policy, steps, nthread, pairs, members) for pairs in chunk_pairs}
+    for pairs, backend in chunked.items():
+        measures[f"chunks_of_{pairs}_pairs"] = lambda backend=backend: time_backend(backend, params, seeds, mirrored)
     if not skip_slow:
         measures["serial"] = lambda: time_serial(env_id, actor, params, seeds, steps)
         measures["lockstep"] = lambda: time_backend(lockstep_backend, params, seeds)
     results = interleaved_runs(repeats, measures)
+    for pairs, backend in chunked.items():  # every member's arithmetic is its own: any chunking plays the same episodes
+        generation = backend.rollout(params, seeds, mirrored)
+        results[f"chunks_of_{pairs}_pairs"] |= {
+            "chunk_members": [len(chunk.members) for chunk in backend.chunks(members, mirrored)],
+            "same_episodes_as_batched": bool(torch.equal(generation.returns, played.returns) and torch.equal(
+                generation.transitions.get("action"), played.transitions.get("action")))}
     if sweep:
         variants = {}
         for workers in (1, 2):
@@ -205,6 +232,8 @@ def main(argv=None) -> dict:
     parser.add_argument("--nthread", type=int, default=os.cpu_count() or 1, help="threads of the backend and of the raw physics batch")
     parser.add_argument("--torch-threads", type=int, default=None, help="torch.set_num_threads (default: torch's)")
     parser.add_argument("--sweep", action="store_true", help="also time workers x chunks and persistent-batch variants")
+    parser.add_argument("--chunk-sweep", type=int, nargs="+", default=[], metavar="PAIRS",
+                        help="also time the batched backend with chunks of about PAIRS mirrored pairs each, in the same rounds")
     parser.add_argument("--envs", nargs="+", default=ENVS)
     parser.add_argument("--repeats", type=int, default=3, help="interleaved rounds; each method's median run is reported")
     parser.add_argument("--skip-slow", action="store_true", help="leave out the serial and lockstep gymnasium loops")
@@ -224,17 +253,19 @@ def main(argv=None) -> dict:
         "load_average_before": os.getloadavg(),
         "envs": {},
     }
-    header = f"{'env':16s} {'method':18s} {'steps':>8s} {'seconds':>8s} {'steps/s':>9s} {'vs raw':>7s} {'vs replay':>9s} {'vs serial':>9s}"
+    header = (f"{'env':16s} {'method':22s} {'steps':>8s} {'seconds':>8s} {'steps/s':>9s} {'vs raw':>7s} {'vs replay':>9s} {'vs serial':>9s}"
+              f" {'cpu us/step':>11s} {'cpu: raw/it':>11s}")
     print(header)
     for env_id in args.envs:
-        results = run(env_id, members, steps, args.nthread, args.sweep, args.repeats, args.skip_slow)
+        results = run(env_id, members, steps, args.nthread, args.sweep, args.repeats, args.skip_slow, tuple(args.chunk_sweep))
         raw, replay = results["raw"]["steps_per_s"], results["raw_replay"]["steps_per_s"]
         serial = results["serial"]["steps_per_s"] if "serial" in results else float("nan")
         rows = {k: v for k, v in results.items() if k != "sweep"} | {f"sweep:{k}": v for k, v in results.get("sweep", {}).items()}
         for method, r in rows.items():
             r["vs_raw"], r["vs_raw_replay"], r["vs_serial"] = r["steps_per_s"] / raw, r["steps_per_s"] / replay, r["steps_per_s"] / serial
-            print(f"{env_id:16s} {method:18s} {r['steps']:8d} {r['seconds']:8.2f} {r['steps_per_s']:9.0f} "
-                  f"{r['vs_raw']:7.2f} {r['vs_raw_replay']:9.2f} {r['vs_serial']:9.2f}")
+            r["cpu_raw_over_this"] = results["raw"]["cpu_us_per_step"] / r["cpu_us_per_step"]
+            print(f"{env_id:16s} {method:22s} {r['steps']:8d} {r['seconds']:8.2f} {r['steps_per_s']:9.0f} "
+                  f"{r['vs_raw']:7.2f} {r['vs_raw_replay']:9.2f} {r['vs_serial']:9.2f} {r['cpu_us_per_step']:11.1f} {r['cpu_raw_over_this']:11.2f}")
         report["envs"][env_id] = results
     report["load_average_after"] = os.getloadavg()
     out = Path(args.out)

@@ -16,7 +16,7 @@ def test_replay_ends_each_member_where_its_episode_ended(env_id):
     seeds = list(range(100, 100 + members))
     backend = MujocoBatchBackend(env_id, PopulationActor(actor), max_episode_steps=steps, nthread=2)
     played = backend.rollout(params, seeds, mirrored)
-    batch, seconds = replay(env_id, played, seeds, nthread=2)
+    batch, seconds, _ = replay(env_id, played, seeds, nthread=2)
     assert seconds > 0
     last = np.cumsum(played.lengths.numpy()) - 1
     final = played.transitions.get(("next", "observation")).numpy()[last]
