@@ -13,9 +13,12 @@ import subprocess
 import pytest
 import torch
 from conftest import ROOT
+from tensordict import TensorDict
+from test_learners import built
 from test_lifecycle import ENV, checkpoints, injected, one_line, rows_without_wall_time, run, tree
 
 from benchmarks.common import transitions
+from torchrl_esrl.collectors.td3_collector import make_frame_batches
 from torchrl_esrl.modules.networks import make_actor, make_critic
 from torchrl_esrl.objectives.td3 import TD3, ForeachSoftUpdate, ManualGradTD3Loss
 from torchrl_esrl.run.checkpoint import checkpoint_paths
@@ -97,7 +100,8 @@ def test_a_run_rerun_on_another_device_is_refused_in_one_line_and_finishes_on_it
     assert stopped.returncode == -signal.SIGKILL, stopped.stderr[-3000:]
     before = tree(tmp_path)
     refused = run(tmp_path, f"device={OTHER[written]}")
-    assert refused.returncode == 2 and one_line(refused).startswith("device: "), refused.stderr[-3000:]
+    line = one_line(refused)
+    assert refused.returncode == 2 and line.startswith("config error: device: "), refused.stderr[-3000:]
     assert tree(tmp_path) == before
     finished = run(tmp_path, f"device={written}")
     assert finished.returncode == 0, finished.stderr[-3000:]
@@ -117,6 +121,22 @@ def test_every_learner_and_the_erl_and_cem_rl_recipes_train_on_the_device(tmp_pa
     assert result.returncode == 0, result.stderr[-3000:]
     assert_finite_rows(tmp_path)
     assert_learner_and_buffers_on(tmp_path, device, learner)
+
+
+@pytest.mark.parametrize("device", DEVICES)
+@pytest.mark.parametrize("learner", ["td3", "ddpg", "sac"])
+def test_the_collector_steps_the_learners_own_exploration_policy_on_the_device(device, learner):
+    """Every tensor of the behaviour policy (its random warm-up's too) is on the learner's device, so
+    TorchRL's ``Collector`` steps that policy itself, not a copy made when it was built (which a
+    restore, the warm-up's counter and its reset would not reach)."""
+    cfg, env, learned = built(learner, 0, f"device={device}", "td3.random_frames=10", "implementation=reference")
+    policy = learned.exploration_policy
+    assert {t.device.type for t in TensorDict.from_module(policy).values(True, True)} == {device}
+    collector, _ = make_frame_batches(cfg, env, learned)
+    try:
+        assert collector.policy is policy
+    finally:
+        collector.shutdown()
 
 
 def test_resume_option_refuses_a_run_written_on_a_device_this_machine_lacks(tmp_path):
