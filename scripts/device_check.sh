@@ -10,7 +10,8 @@
 #
 # The packages the machine lacks are installed from the wheels in .whl/ (if that folder exists)
 # into $SITE (default /tmp/site), ahead of the checkout on PYTHONPATH; torch and numpy are the
-# machine's own. $PYTHON (default python3) runs everything; $WORKERS (default 8) pytest workers.
+# machine's own. $PYTHON (default python3) runs everything; $WORKERS (default 8) pytest workers,
+# $TEST_TIMEOUT (default 200) seconds a test at most.
 # Records in $OUT: log.txt (everything printed, written as it goes), versions.txt (GPU, CPU,
 # Python and package versions) and device_tests.xml (pytest's JUnit report).
 # Exit status: pytest's (0: every test passed); 3 where the wheels did not install.
@@ -19,6 +20,7 @@ OUT=${OUT:?set OUT to the folder the records go to}
 PYTHON=${PYTHON:-python3}
 SITE=${SITE:-/tmp/site}
 WORKERS=${WORKERS:-8}
+TEST_TIMEOUT=${TEST_TIMEOUT:-200}
 mkdir -p "$OUT"
 
 versions() {
@@ -51,7 +53,7 @@ check() {
         export PYTHONPATH="$PWD"
     fi
     versions | tee "$OUT/versions.txt"
-    "$PYTHON" -m pytest -q -p no:cacheprovider -n "$WORKERS" --timeout 200 --durations 20 \
+    "$PYTHON" -m pytest -q -p no:cacheprovider -n "$WORKERS" --timeout "$TEST_TIMEOUT" --durations 20 \
         tests/test_device.py --junitxml "$OUT/device_tests.xml"
 }
 
