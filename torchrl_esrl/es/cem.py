@@ -226,7 +226,8 @@ def cem_rl_gradient_steps(td3, buffer, population: torch.Tensor, rl_members: int
     ``at``: where the steps stand, advanced after every step (default: from the start);
     ``on_step()`` is called after each (a stop point). From a position mid-member, the TD3
     learner is the one checkpointed there: its actor takes its member's row as storage again, as
-    it had, and its target and Adam are kept.
+    it had (on another device than the population, it keeps the values restored), and its target
+    and Adam are kept.
     """
     at = GradientStepsPosition() if at is None else at
     loss = td3.loss
@@ -236,8 +237,9 @@ def cem_rl_gradient_steps(td3, buffer, population: torch.Tensor, rl_members: int
             member = at.member
             if at.member_critic_steps == 0 and at.member_actor_steps == 0:
                 load_actor_and_target(td3, population[member])  # rebinds the actor's parameters: pair them after it
-            else:
+            elif population.device == next(td3.actor.parameters()).device:
                 load_flat_parameters(td3.actor, population[member])  # the row holds the actor's values: the same storage as before the stop
+            # (an actor on another device, device=cuda, held a copy of the row: it is as the checkpoint restored it)
             critic = ("critic", loss.value_loss, td3.critic_optimizer, *_lerp_pairs(loss.target_qvalue_network_params, loss.qvalue_network_params))
             actor = ("actor", loss.actor_loss, td3.actor_optimizer, *_lerp_pairs(loss.target_actor_network_params, loss.actor_network_params))
             while at.member_critic_steps < critic_per_member:

@@ -51,7 +51,7 @@ from torch import nn
 
 from torchrl_esrl.errors import ConfigError
 from torchrl_esrl.es.strategy import checked_returns
-from torchrl_esrl.modules.networks import actor_parameters, flat_parameters
+from torchrl_esrl.modules.networks import actor_parameters, cpu_actor, flat_parameters
 from torchrl_esrl.modules.population import Mirrored
 from torchrl_esrl.run.capacity import Holding, bytes_per_transition, network_holding, population_holdings
 from torchrl_esrl.run.schema import count, number, positive
@@ -94,16 +94,16 @@ def parameter_shapes(actor: nn.Module) -> list[torch.Size]:
 def initial_population(actor: nn.Module, size: int, generator: torch.Generator) -> torch.Tensor:
     """``[size, D]``: ``size`` actors of ``actor``'s architecture, each initialised afresh by its
     layers' own ``reset_parameters`` (PyTorch's default initialisation, as ERL's population is built),
-    under a seed drawn from ``generator``."""
+    under a seed drawn from ``generator``, on CPU (where the population lives) whatever device ``actor`` is on."""
     members = []
     for _ in range(int(size)):
         seed = int(torch.randint(2**62, (1,), generator=generator))
-        member = copy.deepcopy(actor)
+        member = copy.deepcopy(cpu_actor(actor))
         layers = [module for module in member.modules() if callable(getattr(module, "reset_parameters", None))]
         if not layers:
             raise ValueError(f"initial_population: {type(actor).__name__} has no layer with reset_parameters to initialise")
         with torch.random.fork_rng(devices=[]):
-            torch.manual_seed(seed)
+            torch.default_generator.manual_seed(seed)  # CPU's alone: torch.manual_seed would reseed CUDA's too, which fork_rng(devices=[]) leaves
             for layer in layers:
                 layer.reset_parameters()
         members.append(flat_parameters(member))

@@ -135,7 +135,7 @@ class OpenES:
         With ``reset_optimizer`` Adam's moments and step count are cleared: they describe the
         path of the old mean, not the region the new one starts in.
         """
-        self.mean.lerp_(vector.reshape(-1).to(self.mean.dtype), float(mix))
+        self.mean.lerp_(vector.reshape(-1).to(device=self.mean.device, dtype=self.mean.dtype), float(mix))  # a TD3 actor's on another device
         if reset_optimizer:
             self.optimizer.state.clear()
 

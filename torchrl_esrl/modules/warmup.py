@@ -31,8 +31,9 @@ class RandomWarmup(TensorDictModuleBase):
         self.out_keys = [action_key]
         self.action_key = action_key
         self.seed = int(seed)
-        self.register_buffer("low", action_spec.space.low.clone().float())
-        self.register_buffer("high", action_spec.space.high.clone().float())
+        device = next(policy.parameters(), torch.empty(0)).device  # the policy's: TorchRL's Collector steps a policy wholly on its device itself, and a copy of any other
+        self.register_buffer("low", action_spec.space.low.clone().float().to(device))
+        self.register_buffer("high", action_spec.space.high.clone().float().to(device))
         self.frames = int(frames)
         self.generator = torch.Generator()
         self.reset()
@@ -50,7 +51,7 @@ class RandomWarmup(TensorDictModuleBase):
 
     def draw(self, batch_shape: tuple[int, ...]) -> torch.Tensor:
         """Uniform actions for ``batch_shape`` frames (counted as acted)."""
-        uniform = torch.rand((*batch_shape, *self.low.shape), generator=self.generator)
+        uniform = torch.rand((*batch_shape, *self.low.shape), generator=self.generator).to(self.low.device)  # CPU's generator on every device
         self.frames_acted += max(1, math.prod(batch_shape))
         return self.low + (self.high - self.low) * uniform
 

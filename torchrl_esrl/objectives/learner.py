@@ -58,8 +58,11 @@ class Learner(Protocol):
 
 def gaussian_exploration(actor, action_spec, std: float) -> TensorDictSequential:
     """``actor`` followed by TorchRL's ``AdditiveGaussianModule`` of constant ``std``: TD3's and
-    DDPG's behaviour policy (Fujimoto et al. 2018), which the fast TD3 collector steps exactly."""
-    return TensorDictSequential(actor, AdditiveGaussianModule(spec=action_spec, sigma_init=1.0, sigma_end=1.0, mean=0.0, std=float(std)))
+    DDPG's behaviour policy (Fujimoto et al. 2018), which the fast TD3 collector steps exactly. Its
+    buffers are on the actor's device: TorchRL's ``Collector`` steps a policy wholly on its device
+    itself, and a copy of any other."""
+    device = next(actor.parameters()).device
+    return TensorDictSequential(actor, AdditiveGaussianModule(spec=action_spec, sigma_init=1.0, sigma_end=1.0, mean=0.0, std=float(std), device=device))
 
 
 class StockLearner:

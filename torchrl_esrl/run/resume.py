@@ -25,7 +25,7 @@ from torchrl_esrl.errors import ConfigError
 from torchrl_esrl.run.algorithm_info import AlgorithmInfo
 from torchrl_esrl.run.capacity import Holding, check_capacity, estimate
 from torchrl_esrl.run.checkpoint import CHECKPOINT_DIR, newest_readable, no_readable_checkpoint
-from torchrl_esrl.run.config import added_keys, check_output_dir, renamed_keys, schema_of, section_of, validate_config
+from torchrl_esrl.run.config import added_keys, check_output_dir, renamed_keys, schema_of, section_of, validate_config, validate_device
 from torchrl_esrl.run.schema import RunConfig
 
 IGNORED_ON_RESUME = ("resume", "fresh", "logger", "checkpoint", "hydra")  # may change between a run and its resume
@@ -140,6 +140,20 @@ def in_todays_names(saved: dict, schema=None) -> dict:
     return saved
 
 
+def check_saved_device(run_dir: Path, device) -> None:
+    """A run resumes on the device it was written on: its checkpoint holds that device's tensors and
+    random streams (the CUDA generator's state on ``cuda``), which another device cannot continue
+    exactly. In a run directory another ``device`` is refused as any other changed key is; with
+    ``resume=<dir>`` the run's own device must be available here."""
+    try:
+        validate_device(device)
+    except ConfigError:
+        raise ConfigError(
+            f"device: {run_dir} was written with device={device}, which this machine lacks; a run resumes on the device it was "
+            f"written on (allowed: resume it where {device} is available, or {NEW_RUN}); nothing was changed"
+        ) from None
+
+
 def algorithm_of(algorithm: AlgorithmInfo | Callable[[DictConfig], AlgorithmInfo], cfg: DictConfig) -> AlgorithmInfo:
     """The :class:`AlgorithmInfo` a recipe runs with ``cfg`` (a recipe with variants passes a function)."""
     return algorithm(cfg) if callable(algorithm) else algorithm
@@ -182,6 +196,7 @@ def prepare_run(
             if key in current:
                 saved[key] = current[key]
         cfg = OmegaConf.create(saved)
+        check_saved_device(run_dir, cfg.get("device", "cpu"))
     validate_config(cfg, schema)
     name = algorithm_of(algorithm, cfg).name if algorithm is not None else None
     sizes = EnvSpec.from_config(cfg.env).checked_sizes()  # the env played in a child process: refuses what the algorithms cannot take or it cannot play
