@@ -186,6 +186,40 @@ def test_mirrored_forward_gives_the_episodes_of_the_flat_rows(env_id, workers):
         assert (reference.lengths < steps).any()
 
 
+def test_forward_on_the_live_pairs_gives_the_whole_chunk_forward_bit_for_bit():
+    """Once pairs have finished, a chunk computes the pairs with a live member only (runs of
+    contiguous pairs): every action equals bit for bit the forward over all the chunk's pairs on
+    the same padded observations, and the episodes of chunks of one pair each."""
+    steps, members = 150, 16
+    policy, params = population("Walker2d-v5", members, sigma=0.3, seed=3)
+    es = OpenES(params[0].clone(), population_size=members, sigma=0.5, generator=torch.Generator().manual_seed(5))
+    params = es.ask()
+    mirrored, seeds, pairs = es.mirrored(params), [3 * p + 2 for p in range(members)], members // 2
+    one_chunk = MujocoBatchBackend("Walker2d-v5", policy, max_episode_steps=steps, nthread=1, workers=1, chunks_per_worker=1)
+    generation = one_chunk.rollout(params, seeds, mirrored)
+    lengths = generation.lengths.numpy()
+    pair_ends = np.maximum(lengths[:pairs], lengths[pairs:])
+    assert (pair_ends < pair_ends.max()).sum() >= 2 and len(set(pair_ends.tolist())) > 2  # pairs finished apart, before the chunk
+
+    obs_traj = np.zeros((members, steps + 1, one_chunk.observation_dim), dtype=np.float32)  # the backend's padded layout
+    actions = np.zeros((members, steps, one_chunk.action_dim), dtype=np.float32)
+    traj_ids, observation = generation.transitions.get(("collector", "traj_ids")).numpy(), generation.transitions.get("observation").numpy()
+    step = np.arange(len(traj_ids)) - np.repeat(np.cumsum(lengths) - lengths, lengths)
+    obs_traj[traj_ids, step], actions[traj_ids, step] = observation, generation.transitions.get("action").numpy()
+    center, offsets = policy.split_pairs(mirrored)
+    for t in range(int(lengths.max())):
+        whole = policy.mirrored(center, offsets, obs_traj[:, t].reshape(2, pairs, -1)).reshape(members, -1)
+        live = lengths > t
+        assert np.array_equal(whole[live], actions[live, t]), t
+
+    single_pairs = MujocoBatchBackend("Walker2d-v5", policy, max_episode_steps=steps, nthread=1, workers=1, chunks_per_worker=pairs, min_chunk=1)
+    assert len(single_pairs.chunks(members, mirrored)) == pairs
+    alone = single_pairs.rollout(params, seeds, mirrored)
+    assert torch.equal(alone.lengths, generation.lengths) and torch.equal(alone.returns, generation.returns)
+    for key in KEYS:
+        assert torch.equal(alone.transitions.get(key), generation.transitions.get(key)), key
+
+
 def test_chunk_counts():
     """Up to two chunks per worker, of at least ``min_chunk`` members unless a worker would idle."""
     policy, _ = population("HalfCheetah-v5", 2, sigma=0.0)

@@ -58,6 +58,14 @@ class _Chunk:
     pairs: slice | None  # with mirrored pairs: the chunk's pairs (members = pairs and K + pairs)
 
 
+def _runs(pairs_live: np.ndarray, pairs: int) -> list[tuple[int, int]]:
+    """The runs ``(start, stop)`` of contiguous pairs among ``pairs`` that hold a member of ``pairs_live``."""
+    alive = np.zeros(pairs + 2, dtype=np.int8)
+    alive[pairs_live + 1] = 1
+    edges = np.flatnonzero(np.diff(alive))
+    return list(zip(edges[0::2].tolist(), edges[1::2].tolist()))
+
+
 def _policy_refusal(population_actor, observation_dim: int) -> str | None:
     """:meth:`MujocoBatchBackend.policy_refusal` with the observation size known."""
     probe = getattr(population_actor, "nondeterminism", None)
@@ -274,15 +282,38 @@ class MujocoBatchBackend:
             "lengths": np.zeros(members, dtype=np.int64),
         }
 
-    def _policy(self, params: torch.Tensor, mirrored: Mirrored | None, chunk: _Chunk) -> Callable[[np.ndarray], np.ndarray]:
-        """The chunk's forward: its members' observations [n, obs] -> their actions [n, act]."""
+    def _policy(self, params: torch.Tensor, mirrored: Mirrored | None, chunk: _Chunk) -> Callable[[np.ndarray, np.ndarray | None], np.ndarray]:
+        """The chunk's forward: its members' observations [n, obs] and its live members (None: all)
+        -> the live members' actions [live, act]. Over mirrored pairs it computes only the pairs
+        with a live member, on runs of contiguous pairs: views of their offsets, each pair's
+        products of the same shapes, so bit for bit the actions of the forward over all the pairs."""
         if chunk.pairs is None:
             rows = params[int(chunk.members[0]) : int(chunk.members[-1]) + 1]  # contiguous: a view
             layers = self.policy.split(rows)
-            return lambda observations: self.policy(rows, torch.from_numpy(observations), layers).numpy()
+
+            def rows_forward(observations: np.ndarray, live: np.ndarray | None) -> np.ndarray:
+                # every member: each member's actions are those of the reference's forward over all
+                actions = self.policy(rows, torch.from_numpy(observations), layers).numpy()
+                return actions if live is None else actions[live]
+
+            return rows_forward
         center, offsets = self.policy.split_pairs(mirrored, chunk.pairs)
         pairs = chunk.pairs.stop - chunk.pairs.start
-        return lambda observations: self.policy.mirrored(center, offsets, observations.reshape(2, pairs, -1)).reshape(2 * pairs, -1)
+        runs: dict[int, list[tuple[int, int]]] = {}  # by the number of live members: the live set only shrinks
+
+        def pairs_forward(observations: np.ndarray, live: np.ndarray | None) -> np.ndarray:
+            observations = observations.reshape(2, pairs, -1)
+            if live is None:
+                return self.policy.mirrored(center, offsets, observations).reshape(2 * pairs, -1)
+            if len(live) not in runs:
+                runs[len(live)] = _runs(live % pairs, pairs)
+            actions = np.empty((2, pairs, self.action_dim), dtype=np.float32)
+            for start, stop in runs[len(live)]:
+                run_offsets = [(weight[start:stop], bias[start:stop]) for weight, bias in offsets]
+                actions[:, start:stop] = self.policy.mirrored(center, run_offsets, observations[:, start:stop])
+            return actions.reshape(2 * pairs, -1)[live]
+
+        return pairs_forward
 
     def _reset(self, worker: _Worker, batch: mujoco.batch.Batch, seeds: Sequence[int], first_obs: np.ndarray, x_before: np.ndarray) -> None:
         data = worker.reset_env.unwrapped.data
@@ -332,11 +363,7 @@ class MujocoBatchBackend:
             all_live = len(live) == population
             # Basic slices while every member is live: views instead of fancy-index copies.
             rows = slice(None) if all_live else live
-            # Every member every step: finished ones cost a little wasted forward, and each member's
-            # actions stay those of the reference, whose forward also runs over all members.
-            action = policy(obs_traj[:, t])
-            if not all_live:
-                action = action[live]
+            action = policy(obs_traj[:, t], None if all_live else live)
             actions[rows, t] = action
             ctrl[rows] = action
 
