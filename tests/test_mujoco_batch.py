@@ -220,6 +220,24 @@ def test_forward_on_the_live_pairs_gives_the_whole_chunk_forward_bit_for_bit():
         assert torch.equal(alone.transitions.get(key), generation.transitions.get(key)), key
 
 
+def test_ant_contact_forces_bit_for_bit_on_a_batch_of_one_thread_and_of_two():
+    """Ant's clipped contact forces in the observation, and its contact cost, equal gymnasium's bit
+    for bit whether each step's last substep runs on the worker's own MjData (a batch of one
+    thread) or the batch keeps one MjData per simulation (a batch of two threads)."""
+    steps, members = 40, 4
+    policy, params = population("Ant-v5", members, sigma=0.3)
+    seeds = [5 * p + 1 for p in range(members)]
+    in_worker = MujocoBatchBackend("Ant-v5", policy, max_episode_steps=steps, nthread=1, workers=1)
+    persistent = MujocoBatchBackend("Ant-v5", policy, max_episode_steps=steps, nthread=2, workers=1)
+    assert in_worker.last_substep_in_worker and not in_worker.persistent
+    assert not persistent.last_substep_in_worker and persistent.persistent and persistent.threads_per_batch == 2
+    reference = _episodes(GymBackend("Ant-v5", policy, max_episode_steps=steps).rollout(params, seeds))
+    forces = reference[("next", "observation")][:, in_worker.model.nq - 2 + in_worker.model.nv :]
+    assert (forces != 0).any(axis=1).float().mean() > 0.2  # contact forces in many observations
+    for backend in (in_worker, persistent):
+        assert _equal(_episodes(backend.rollout(params, seeds)), reference)
+
+
 def test_chunk_counts():
     """Up to two chunks per worker, of at least ``min_chunk`` members unless a worker would idle."""
     policy, _ = population("HalfCheetah-v5", 2, sigma=0.0)

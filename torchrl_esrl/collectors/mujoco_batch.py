@@ -2,7 +2,9 @@
 
 :class:`MujocoBatchBackend` plays one episode per population member like the reference
 ``"gym"`` backend (:class:`torchrl_esrl.collectors.gym_backend.GymBackend`), but steps a chunk of
-members' physics with one ``mujoco.batch.Batch.step`` call per env step and recomputes
+members' physics with one ``mujoco.batch.Batch.step`` call per env step (for Ant on a batch of one
+thread, all substeps but the last, which the worker plays member by member on its own ``MjData``
+to read gymnasium's contact forces from it) and recomputes
 observations, rewards, termination and truncation of the gymnasium v5 tasks in vectorised numpy
 over the chunk's live members. Members never interact, so each worker thread plays whole chunks
 on a batch of its own: the workers do not wait for each other within an episode.
@@ -111,7 +113,8 @@ class MujocoBatchBackend:
             early, and each chunk's noise is a smaller share of the cache.
         min_chunk: members a chunk holds at least, unless that would leave a worker idle: each
             chunk pays its own numpy bookkeeping per step under the GIL.
-        persistent: keep one ``MjData`` per simulation (needed, and forced, for Ant's contact forces).
+        persistent: keep one ``MjData`` per simulation (forced for Ant's contact forces when a batch
+            steps on more than one thread).
 
     Every member's arithmetic is its own (its physics, and its forward: :class:`PopulationActor`
     computes each member, or each mirrored pair, with products of the same shapes), so every
@@ -148,9 +151,13 @@ class MujocoBatchBackend:
         self.policy = population_actor
         self.nthread = int(nthread or process_cores())
         workers = int(workers or min(self.nthread, 2))
-        self.persistent = bool(persistent or self.rules.contact_forces)
         self.workers = [_Worker(spec, self.rules.contact_forces) for _ in range(workers)]
         self.threads_per_batch = max(1, self.nthread // workers)
+        # Ant's contact forces need the MjData each step leaves behind: on a batch of one thread the
+        # worker plays each step's last substep on its own MjData; otherwise a persistent batch keeps
+        # one per simulation, copied out member by member.
+        self.last_substep_in_worker = self.rules.contact_forces and self.threads_per_batch == 1
+        self.persistent = bool(persistent or (self.rules.contact_forces and not self.last_substep_in_worker))
         self.chunks_per_worker, self.min_chunk = int(chunks_per_worker), int(min_chunk)
         self._pool: ThreadPoolExecutor | None = None
         reset_env = self.workers[0].reset_env
@@ -336,6 +343,22 @@ class MujocoBatchBackend:
             mujoco.mj_rnePostConstraint(worker.model, scratch)
             out[p] = scratch.cfrc_ext
 
+    def _last_substep(self, worker: _Worker, state: np.ndarray, members: np.ndarray, cfrc_ext: np.ndarray, x_after: np.ndarray) -> None:
+        """Each member's last substep of a step on ``worker``'s own MjData, from and back into its
+        state row (as the batch loads and saves it), then gymnasium's mj_rnePostConstraint: its
+        contact forces and the main body's x, without copying a whole MjData out of the batch."""
+        model, scratch = worker.model, worker.scratch
+        forces = scratch.cfrc_ext  # views of the MjData's own arrays
+        x = scratch.xpos[self.x_body] if self.x_body is not None else scratch.qpos
+        for p in members:
+            row = state[p]
+            mujoco.mj_setState(model, scratch, row, _INTEGRATION_STATE)
+            mujoco.mj_step(model, scratch)
+            mujoco.mj_rnePostConstraint(model, scratch)
+            mujoco.mj_getState(model, scratch, row, _INTEGRATION_STATE)
+            cfrc_ext[p] = forces
+            x_after[p] = x[0]
+
     def _play(self, worker: _Worker, params: torch.Tensor, seeds: list[int], mirrored: Mirrored | None, chunk: _Chunk) -> dict[str, np.ndarray]:
         """One episode per member of ``chunk``, on ``worker``'s batch: the padded arrays of :meth:`rollout`."""
         population, horizon, rules, c = len(chunk.members), self.horizon, self.rules, self.constants
@@ -354,6 +377,8 @@ class MujocoBatchBackend:
         x_before = np.empty(population)
         first_obs = np.empty((population, self.observation_dim))
         cfrc_ext = np.zeros((population, self.model.nbody, 6)) if rules.contact_forces else None
+        in_worker = self.last_substep_in_worker
+        x_last = np.empty(population) if in_worker else None
         self._reset(worker, batch, seeds, first_obs, x_before)
         obs_traj[:, 0] = first_obs
 
@@ -367,10 +392,18 @@ class MujocoBatchBackend:
             actions[rows, t] = action
             ctrl[rows] = action
 
-            batch.step(ids=None if all_live else live, nstep=self.frame_skip)
+            ids = None if all_live else live
+            if in_worker:  # all substeps but the last on the batch
+                if self.frame_skip > 1:
+                    batch.step(ids=ids, nstep=self.frame_skip - 1)
+                self._last_substep(worker, batch.state, live, cfrc_ext, x_last)
+            else:
+                batch.step(ids=ids, nstep=self.frame_skip)
 
             qpos, qvel = state_qpos[rows], state_qvel[rows]
-            if x_body is not None:
+            if in_worker:
+                x_after = x_last[rows]
+            elif x_body is not None:
                 x_after = body_xpos[rows, x_body, 0]
             else:
                 x_after = qpos[:, 0]
@@ -396,7 +429,8 @@ class MujocoBatchBackend:
                 reward = forward_reward
                 term = None
             if rules.contact_forces:
-                self._contact_forces(worker, batch, live, cfrc_ext)
+                if not in_worker:
+                    self._contact_forces(worker, batch, live, cfrc_ext)
                 low, high = c["_contact_force_range"]
                 clipped = np.clip(cfrc_ext[rows], low, high)
                 contact_cost = c["_contact_cost_weight"] * np.square(clipped).reshape(len(live), -1).sum(axis=1)
