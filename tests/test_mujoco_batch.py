@@ -186,6 +186,58 @@ def test_mirrored_forward_gives_the_episodes_of_the_flat_rows(env_id, workers):
         assert (reference.lengths < steps).any()
 
 
+def test_forward_on_the_live_pairs_gives_the_whole_chunk_forward_bit_for_bit():
+    """Once pairs have finished, a chunk computes the pairs with a live member only (runs of
+    contiguous pairs): every action equals bit for bit the forward over all the chunk's pairs on
+    the same padded observations, and the episodes of chunks of one pair each."""
+    steps, members = 150, 16
+    policy, params = population("Walker2d-v5", members, sigma=0.3, seed=3)
+    es = OpenES(params[0].clone(), population_size=members, sigma=0.5, generator=torch.Generator().manual_seed(5))
+    params = es.ask()
+    mirrored, seeds, pairs = es.mirrored(params), [3 * p + 2 for p in range(members)], members // 2
+    one_chunk = MujocoBatchBackend("Walker2d-v5", policy, max_episode_steps=steps, nthread=1, workers=1, chunks_per_worker=1)
+    generation = one_chunk.rollout(params, seeds, mirrored)
+    lengths = generation.lengths.numpy()
+    pair_ends = np.maximum(lengths[:pairs], lengths[pairs:])
+    assert (pair_ends < pair_ends.max()).sum() >= 2 and len(set(pair_ends.tolist())) > 2  # pairs finished apart, before the chunk
+
+    obs_traj = np.zeros((members, steps + 1, one_chunk.observation_dim), dtype=np.float32)  # the backend's padded layout
+    actions = np.zeros((members, steps, one_chunk.action_dim), dtype=np.float32)
+    traj_ids, observation = generation.transitions.get(("collector", "traj_ids")).numpy(), generation.transitions.get("observation").numpy()
+    step = np.arange(len(traj_ids)) - np.repeat(np.cumsum(lengths) - lengths, lengths)
+    obs_traj[traj_ids, step], actions[traj_ids, step] = observation, generation.transitions.get("action").numpy()
+    center, offsets = policy.split_pairs(mirrored)
+    for t in range(int(lengths.max())):
+        whole = policy.mirrored(center, offsets, obs_traj[:, t].reshape(2, pairs, -1)).reshape(members, -1)
+        live = lengths > t
+        assert np.array_equal(whole[live], actions[live, t]), t
+
+    single_pairs = MujocoBatchBackend("Walker2d-v5", policy, max_episode_steps=steps, nthread=1, workers=1, chunks_per_worker=pairs, min_chunk=1)
+    assert len(single_pairs.chunks(members, mirrored)) == pairs
+    alone = single_pairs.rollout(params, seeds, mirrored)
+    assert torch.equal(alone.lengths, generation.lengths) and torch.equal(alone.returns, generation.returns)
+    for key in KEYS:
+        assert torch.equal(alone.transitions.get(key), generation.transitions.get(key)), key
+
+
+def test_ant_contact_forces_bit_for_bit_on_a_batch_of_one_thread_and_of_two():
+    """Ant's clipped contact forces in the observation, and its contact cost, equal gymnasium's bit
+    for bit whether each step's last substep runs on the worker's own MjData (a batch of one
+    thread) or the batch keeps one MjData per simulation (a batch of two threads)."""
+    steps, members = 40, 4
+    policy, params = population("Ant-v5", members, sigma=0.3)
+    seeds = [5 * p + 1 for p in range(members)]
+    in_worker = MujocoBatchBackend("Ant-v5", policy, max_episode_steps=steps, nthread=1, workers=1)
+    persistent = MujocoBatchBackend("Ant-v5", policy, max_episode_steps=steps, nthread=2, workers=1)
+    assert in_worker.last_substep_in_worker and not in_worker.persistent
+    assert not persistent.last_substep_in_worker and persistent.persistent and persistent.threads_per_batch == 2
+    reference = _episodes(GymBackend("Ant-v5", policy, max_episode_steps=steps).rollout(params, seeds))
+    forces = reference[("next", "observation")][:, in_worker.model.nq - 2 + in_worker.model.nv :]
+    assert (forces != 0).any(axis=1).float().mean() > 0.2  # contact forces in many observations
+    for backend in (in_worker, persistent):
+        assert _equal(_episodes(backend.rollout(params, seeds)), reference)
+
+
 def test_chunk_counts():
     """Up to two chunks per worker, of at least ``min_chunk`` members unless a worker would idle."""
     policy, _ = population("HalfCheetah-v5", 2, sigma=0.0)

@@ -2,7 +2,9 @@
 
 :class:`MujocoBatchBackend` plays one episode per population member like the reference
 ``"gym"`` backend (:class:`torchrl_esrl.collectors.gym_backend.GymBackend`), but steps a chunk of
-members' physics with one ``mujoco.batch.Batch.step`` call per env step and recomputes
+members' physics with one ``mujoco.batch.Batch.step`` call per env step (for Ant on a batch of one
+thread, all substeps but the last, which the worker plays member by member on its own ``MjData``
+to read gymnasium's contact forces from it) and recomputes
 observations, rewards, termination and truncation of the gymnasium v5 tasks in vectorised numpy
 over the chunk's live members. Members never interact, so each worker thread plays whole chunks
 on a batch of its own: the workers do not wait for each other within an episode.
@@ -58,6 +60,14 @@ class _Chunk:
     pairs: slice | None  # with mirrored pairs: the chunk's pairs (members = pairs and K + pairs)
 
 
+def _runs(pairs_live: np.ndarray, pairs: int) -> list[tuple[int, int]]:
+    """The runs ``(start, stop)`` of contiguous pairs among ``pairs`` that hold a member of ``pairs_live``."""
+    alive = np.zeros(pairs + 2, dtype=np.int8)
+    alive[pairs_live + 1] = 1
+    edges = np.flatnonzero(np.diff(alive))
+    return list(zip(edges[0::2].tolist(), edges[1::2].tolist()))
+
+
 def _policy_refusal(population_actor, observation_dim: int) -> str | None:
     """:meth:`MujocoBatchBackend.policy_refusal` with the observation size known."""
     probe = getattr(population_actor, "nondeterminism", None)
@@ -103,7 +113,8 @@ class MujocoBatchBackend:
             early, and each chunk's noise is a smaller share of the cache.
         min_chunk: members a chunk holds at least, unless that would leave a worker idle: each
             chunk pays its own numpy bookkeeping per step under the GIL.
-        persistent: keep one ``MjData`` per simulation (needed, and forced, for Ant's contact forces).
+        persistent: keep one ``MjData`` per simulation (forced for Ant's contact forces when a batch
+            steps on more than one thread).
 
     Every member's arithmetic is its own (its physics, and its forward: :class:`PopulationActor`
     computes each member, or each mirrored pair, with products of the same shapes), so every
@@ -140,9 +151,13 @@ class MujocoBatchBackend:
         self.policy = population_actor
         self.nthread = int(nthread or process_cores())
         workers = int(workers or min(self.nthread, 2))
-        self.persistent = bool(persistent or self.rules.contact_forces)
         self.workers = [_Worker(spec, self.rules.contact_forces) for _ in range(workers)]
         self.threads_per_batch = max(1, self.nthread // workers)
+        # Ant's contact forces need the MjData each step leaves behind: on a batch of one thread the
+        # worker plays each step's last substep on its own MjData; otherwise a persistent batch keeps
+        # one per simulation, copied out member by member.
+        self.last_substep_in_worker = self.rules.contact_forces and self.threads_per_batch == 1
+        self.persistent = bool(persistent or (self.rules.contact_forces and not self.last_substep_in_worker))
         self.chunks_per_worker, self.min_chunk = int(chunks_per_worker), int(min_chunk)
         self._pool: ThreadPoolExecutor | None = None
         reset_env = self.workers[0].reset_env
@@ -274,15 +289,38 @@ class MujocoBatchBackend:
             "lengths": np.zeros(members, dtype=np.int64),
         }
 
-    def _policy(self, params: torch.Tensor, mirrored: Mirrored | None, chunk: _Chunk) -> Callable[[np.ndarray], np.ndarray]:
-        """The chunk's forward: its members' observations [n, obs] -> their actions [n, act]."""
+    def _policy(self, params: torch.Tensor, mirrored: Mirrored | None, chunk: _Chunk) -> Callable[[np.ndarray, np.ndarray | None], np.ndarray]:
+        """The chunk's forward: its members' observations [n, obs] and its live members (None: all)
+        -> the live members' actions [live, act]. Over mirrored pairs it computes only the pairs
+        with a live member, on runs of contiguous pairs: views of their offsets, each pair's
+        products of the same shapes, so bit for bit the actions of the forward over all the pairs."""
         if chunk.pairs is None:
             rows = params[int(chunk.members[0]) : int(chunk.members[-1]) + 1]  # contiguous: a view
             layers = self.policy.split(rows)
-            return lambda observations: self.policy(rows, torch.from_numpy(observations), layers).numpy()
+
+            def rows_forward(observations: np.ndarray, live: np.ndarray | None) -> np.ndarray:
+                # every member: each member's actions are those of the reference's forward over all
+                actions = self.policy(rows, torch.from_numpy(observations), layers).numpy()
+                return actions if live is None else actions[live]
+
+            return rows_forward
         center, offsets = self.policy.split_pairs(mirrored, chunk.pairs)
         pairs = chunk.pairs.stop - chunk.pairs.start
-        return lambda observations: self.policy.mirrored(center, offsets, observations.reshape(2, pairs, -1)).reshape(2 * pairs, -1)
+        runs: dict[int, list[tuple[int, int]]] = {}  # by the number of live members: the live set only shrinks
+
+        def pairs_forward(observations: np.ndarray, live: np.ndarray | None) -> np.ndarray:
+            observations = observations.reshape(2, pairs, -1)
+            if live is None:
+                return self.policy.mirrored(center, offsets, observations).reshape(2 * pairs, -1)
+            if len(live) not in runs:
+                runs[len(live)] = _runs(live % pairs, pairs)
+            actions = np.empty((2, pairs, self.action_dim), dtype=np.float32)
+            for start, stop in runs[len(live)]:
+                run_offsets = [(weight[start:stop], bias[start:stop]) for weight, bias in offsets]
+                actions[:, start:stop] = self.policy.mirrored(center, run_offsets, observations[:, start:stop])
+            return actions.reshape(2 * pairs, -1)[live]
+
+        return pairs_forward
 
     def _reset(self, worker: _Worker, batch: mujoco.batch.Batch, seeds: Sequence[int], first_obs: np.ndarray, x_before: np.ndarray) -> None:
         data = worker.reset_env.unwrapped.data
@@ -305,6 +343,22 @@ class MujocoBatchBackend:
             mujoco.mj_rnePostConstraint(worker.model, scratch)
             out[p] = scratch.cfrc_ext
 
+    def _last_substep(self, worker: _Worker, state: np.ndarray, members: np.ndarray, cfrc_ext: np.ndarray, x_after: np.ndarray) -> None:
+        """Each member's last substep of a step on ``worker``'s own MjData, from and back into its
+        state row (as the batch loads and saves it), then gymnasium's mj_rnePostConstraint: its
+        contact forces and the main body's x, without copying a whole MjData out of the batch."""
+        model, scratch = worker.model, worker.scratch
+        forces = scratch.cfrc_ext  # views of the MjData's own arrays
+        x = scratch.xpos[self.x_body] if self.x_body is not None else scratch.qpos
+        for p in members:
+            row = state[p]
+            mujoco.mj_setState(model, scratch, row, _INTEGRATION_STATE)
+            mujoco.mj_step(model, scratch)
+            mujoco.mj_rnePostConstraint(model, scratch)
+            mujoco.mj_getState(model, scratch, row, _INTEGRATION_STATE)
+            cfrc_ext[p] = forces
+            x_after[p] = x[0]
+
     def _play(self, worker: _Worker, params: torch.Tensor, seeds: list[int], mirrored: Mirrored | None, chunk: _Chunk) -> dict[str, np.ndarray]:
         """One episode per member of ``chunk``, on ``worker``'s batch: the padded arrays of :meth:`rollout`."""
         population, horizon, rules, c = len(chunk.members), self.horizon, self.rules, self.constants
@@ -323,6 +377,8 @@ class MujocoBatchBackend:
         x_before = np.empty(population)
         first_obs = np.empty((population, self.observation_dim))
         cfrc_ext = np.zeros((population, self.model.nbody, 6)) if rules.contact_forces else None
+        in_worker = self.last_substep_in_worker
+        x_last = np.empty(population) if in_worker else None
         self._reset(worker, batch, seeds, first_obs, x_before)
         obs_traj[:, 0] = first_obs
 
@@ -332,18 +388,22 @@ class MujocoBatchBackend:
             all_live = len(live) == population
             # Basic slices while every member is live: views instead of fancy-index copies.
             rows = slice(None) if all_live else live
-            # Every member every step: finished ones cost a little wasted forward, and each member's
-            # actions stay those of the reference, whose forward also runs over all members.
-            action = policy(obs_traj[:, t])
-            if not all_live:
-                action = action[live]
+            action = policy(obs_traj[:, t], None if all_live else live)
             actions[rows, t] = action
             ctrl[rows] = action
 
-            batch.step(ids=None if all_live else live, nstep=self.frame_skip)
+            ids = None if all_live else live
+            if in_worker:  # all substeps but the last on the batch
+                if self.frame_skip > 1:
+                    batch.step(ids=ids, nstep=self.frame_skip - 1)
+                self._last_substep(worker, batch.state, live, cfrc_ext, x_last)
+            else:
+                batch.step(ids=ids, nstep=self.frame_skip)
 
             qpos, qvel = state_qpos[rows], state_qvel[rows]
-            if x_body is not None:
+            if in_worker:
+                x_after = x_last[rows]
+            elif x_body is not None:
                 x_after = body_xpos[rows, x_body, 0]
             else:
                 x_after = qpos[:, 0]
@@ -369,7 +429,8 @@ class MujocoBatchBackend:
                 reward = forward_reward
                 term = None
             if rules.contact_forces:
-                self._contact_forces(worker, batch, live, cfrc_ext)
+                if not in_worker:
+                    self._contact_forces(worker, batch, live, cfrc_ext)
                 low, high = c["_contact_force_range"]
                 clipped = np.clip(cfrc_ext[rows], low, high)
                 contact_cost = c["_contact_cost_weight"] * np.square(clipped).reshape(len(live), -1).sum(axis=1)
