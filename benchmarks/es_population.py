@@ -41,7 +41,6 @@ import os
 
 if os.environ.get("BENCHMARKS_OMP_PASSIVE"):  # 1: OMP_WAIT_POLICY=PASSIVE; default: libgomp's own policy, as the recipes run
     os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
-import platform
 import sys
 import time
 from pathlib import Path
@@ -54,6 +53,7 @@ import numpy as np
 import torch
 from torchrl.data import Bounded
 
+from benchmarks.common import machine
 from torchrl_esrl.collectors.gym_backend import GymBackend
 from torchrl_esrl.collectors.mujoco_batch import MujocoBatchBackend
 from torchrl_esrl.es.openes import OpenES
@@ -244,10 +244,7 @@ def main(argv=None) -> dict:
     if args.torch_threads:
         torch.set_num_threads(args.torch_threads)
     report = {
-        "machine": {"cpus": os.cpu_count(), "processor": platform.processor() or platform.machine(),
-                    "torch": torch.__version__, "mujoco": mujoco.__version__, "gymnasium": gym.__version__,
-                    "torch_threads": torch.get_num_threads(), "mujoco_threads": args.nthread,
-                    "OMP_WAIT_POLICY": os.environ.get("OMP_WAIT_POLICY")},
+        "machine": {**machine(), "mujoco": mujoco.__version__, "gymnasium": gym.__version__, "mujoco_threads": args.nthread},
         "members": members, "max_episode_steps": steps, "sigma": 0.005, "actor": "2x256 tanh",
         "command": " ".join(["python -m benchmarks.es_population", *(argv if argv is not None else sys.argv[1:])]),
         "load_average_before": os.getloadavg(),
