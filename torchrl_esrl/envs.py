@@ -15,18 +15,16 @@ from __future__ import annotations
 import difflib
 import inspect
 import logging
-import os
-import signal
 import sys
 import warnings
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, replace
-from pathlib import Path
 from typing import Any, NamedTuple
 
 import gymnasium as gym
 import numpy as np
 import torch
+from torchrl_esrl.env_play import NotPlayable, in_child, play_gym, play_torchrl, same_state
 from torchrl_esrl.errors import ConfigError, error_line
 from torchrl.envs import Compose, DoubleToFloat, GymEnv, GymWrapper, RewardSum, StepCounter, TransformedEnv
 
@@ -237,7 +235,7 @@ class EnvSpec:
 
     def sizes(self) -> EnvSizes:
         """What the networks and buffers are sized by, read off the env every part plays (wrappers
-        included), once it has been played (:func:`_play_gym`, and through TorchRL where the spec has
+        included), once it has been played (:func:`~torchrl_esrl.env_play.play_gym`, and through TorchRL where the spec has
         transforms); :class:`ConfigError` naming the key where the algorithms cannot take it or it
         cannot be played (:meth:`_refusal`)."""
         quiet_logs()
@@ -255,7 +253,7 @@ class EnvSpec:
             if not isinstance(observation, gym.spaces.Box) or len(observation.shape) != 1:
                 raise ConfigError(f"{field_name}: '{self.id}' has the observation space {observation} (allowed: {TASKS_ALLOWED})")
             try:
-                before, after = _play_gym(env, len(self.wrappers))
+                before, after = play_gym(env, len(self.wrappers))
             except NotPlayable as failure:
                 raise self._refusal(failure) from None
             changed = [key for key in before if before[key] != after.get(key)]
@@ -271,7 +269,7 @@ class EnvSpec:
 
     def _check_transforms(self) -> int:
         """The observation size after the user's transforms, once the TorchRL env has been played
-        (:meth:`_play_torchrl`); :class:`ConfigError` for a transform that keeps state from one
+        (:func:`~torchrl_esrl.env_play.play_torchrl`); :class:`ConfigError` for a transform that keeps state from one
         episode to the next (running statistics): TD3's env, every ES offspring and every
         evaluation would each keep a state of their own."""
         try:
@@ -282,10 +280,10 @@ class EnvSpec:
             if spec is None or len(spec.shape) != 1:
                 raise ConfigError(f"env.transforms: the observation becomes {spec} (allowed: transforms that keep a flat 'observation')")
             try:
-                before, after = _play_torchrl(env)
+                before, after = play_torchrl(env)
             except NotPlayable as failure:
                 raise self._refusal(failure) from None
-            changed = [key for key, value in after.items() if not _same(before.get(key), value)]
+            changed = [key for key, value in after.items() if not same_state(before.get(key), value)]
             if changed:
                 raise ConfigError(f"env.transforms: a transform keeps state from one episode to the next ({changed[0]}: running statistics), which TD3's env, every ES offspring and every evaluation would each keep apart (allowed: transforms whose state an episode's reset restores)")
             return int(spec.shape[0])
@@ -308,7 +306,7 @@ class EnvSpec:
             raise NotPlayable("made", "fails", error_line(error)) from None
 
     def play_failure(self) -> "NotPlayable | None":
-        """How this spec fails when it is made and played (:func:`_play_gym`, then through TorchRL
+        """How this spec fails when it is made and played (:func:`~torchrl_esrl.env_play.play_gym`, then through TorchRL
         where it has transforms), or None where it plays."""
         quiet_logs()
         try:
@@ -316,7 +314,7 @@ class EnvSpec:
         except Exception as error:  # noqa: BLE001 - whatever making it raises is how it fails
             return NotPlayable("made", "fails", error_line(error))
         try:
-            _play_gym(env)
+            play_gym(env)
         except NotPlayable as failure:
             return failure
         finally:
@@ -328,7 +326,7 @@ class EnvSpec:
         except NotPlayable as failure:
             return failure
         try:
-            _play_torchrl(env)
+            play_torchrl(env)
         except NotPlayable as failure:
             return failure
         finally:
@@ -365,32 +363,20 @@ class EnvSpec:
         native crash in the simulator, a wrapper or a transform) ends the child, and is refused in
         one line naming the first entry (:meth:`parts`) whose play ends a process too. The child's
         own output (warnings of a failing env) is not shown."""
-        kind, value = _in_child(EnvSpec.sizes, self)
+        kind, value = in_child(EnvSpec.sizes, self)
         if kind == "returned":
             return value
         if kind == "refused":
             raise ConfigError(value)
         for key, entry, spec in self.parts():
-            found = _in_child(EnvSpec.play_failure, spec)[1]  # None where it plays, else how it fails or ends
+            found = in_child(EnvSpec.play_failure, spec)[1]  # None where it plays, else how it fails or ends
             if found is not None:
                 raise _refused(self.id, key, entry, found)
         key, entry, _ = self.parts()[-1]  # every part plays: sizes() alone ends the process
         raise _refused(self.id, key, entry, value)
 
 
-PLAY_STEPS = 3  # steps of the play before a run: the wrappers' and transforms' state checks compare the resets around them
-UNSTABLE = ("BADQPOS", "BADQVEL", "BADQACC")  # MuJoCo's warnings that its simulation is unstable (it resets the state)
 ALLOWED_PLAY = "values with which {id} resets and steps, its observations and rewards finite"
-
-
-class NotPlayable(Exception):
-    """How an env fails when played: ``where`` (``made``, ``reset``, ``step 1``...; empty where not
-    known), ``what`` it does (``fails``, ``gives a non-finite reward (nan)``) and ``detail`` (the
-    exception raised)."""
-
-    def __init__(self, where: str, what: str, detail: str = ""):
-        super().__init__(where, what, detail)
-        self.where, self.what, self.detail = where, what, detail
 
 
 def _refused(env_id: str, key: str, entry: str, failure: NotPlayable) -> ConfigError:
@@ -399,142 +385,6 @@ def _refused(env_id: str, key: str, entry: str, failure: NotPlayable) -> ConfigE
     allowed = TASKS_ALLOWED if key == "env.id" else ALLOWED_PLAY.format(id=env_id)
     detail = f" ({failure.detail})" if failure.detail else ""
     return ConfigError(f"{key}: {entry} {failure.what}{where}{detail} (allowed: {allowed})")
-
-
-def _check_played(where: str, env, **values) -> None:
-    """:class:`NotPlayable` where one of ``values`` (an observation, a reward) is not finite, or
-    where MuJoCo has warned that the simulation of ``env`` is unstable."""
-    for name, value in values.items():
-        array = np.asarray(value, dtype=np.float64)
-        if not np.isfinite(array).all():
-            raise NotPlayable(where, f"gives a non-finite {name} ({array[~np.isfinite(array)].flat[0]})")
-    data = getattr(getattr(env, "unwrapped", env), "data", None)
-    if data is not None and hasattr(data, "warning"):
-        import mujoco
-
-        for name in UNSTABLE:
-            if data.warning[getattr(mujoco.mjtWarning, f"mjWARN_{name}")].number:
-                raise NotPlayable(where, f"makes MuJoCo's simulation unstable (its warning: NaN, Inf or huge value in {name[3:].lower()})")
-
-
-def _play_gym(env: gym.Env, layers: int = 0) -> tuple[dict, dict]:
-    """Plays a gymnasium env as a run would: reset (seed 0), :data:`PLAY_STEPS` steps of uniform
-    random actions (fewer if the episode ends), reset again (seed 0). :class:`NotPlayable` where a
-    call raises, an observation or a reward is not finite, or MuJoCo finds its simulation
-    unstable. Returns the state of the outer ``layers`` wrappers after each reset."""
-    where = "reset"
-    try:
-        observation, _ = env.reset(seed=0)
-        _check_played(where, env, observation=observation)
-        before = _wrapper_state(env, layers)
-        rng, space = np.random.default_rng(0), env.action_space
-        box = isinstance(space, gym.spaces.Box)
-        low, high = (np.where(np.isfinite(space.low), space.low, -1.0), np.where(np.isfinite(space.high), space.high, 1.0)) if box else (None, None)
-        for step in range(1, PLAY_STEPS + 1):
-            where = f"step {step}"
-            action = rng.uniform(low, high).astype(space.dtype) if box else space.sample()
-            observation, reward, terminated, truncated, _ = env.step(action)
-            _check_played(where, env, observation=observation, reward=reward)
-            if terminated or truncated:
-                break
-        where = "second reset"
-        observation, _ = env.reset(seed=0)
-        _check_played(where, env, observation=observation)
-        return before, _wrapper_state(env, layers)
-    except NotPlayable:
-        raise
-    except Exception as error:  # noqa: BLE001 - whatever the env raises is how it fails
-        raise NotPlayable(where, "fails", error_line(error)) from None
-
-
-def _play_torchrl(env) -> tuple[dict, dict]:
-    """Plays a TorchRL env (the user's transforms included): reset (seed 0), a rollout of
-    :data:`PLAY_STEPS` random steps, reset again (seed 0); :class:`NotPlayable` as
-    :func:`_play_gym`. Returns the transforms' state after each reset."""
-    where = "reset"
-    try:
-        env.set_seed(0)
-        reset = env.reset()
-        _check_played(where, None, observation=reset["observation"])
-        before = _transform_state(env.transform)
-        where = f"first {PLAY_STEPS} steps"
-        rollout = env.rollout(PLAY_STEPS, break_when_any_done=False)
-        _check_played(where, None, observation=rollout["next", "observation"], reward=rollout["next", "reward"])
-        where = "second reset"
-        env.set_seed(0)
-        _check_played(where, None, observation=env.reset()["observation"])
-        return before, _transform_state(env.transform)
-    except NotPlayable:
-        raise
-    except Exception as error:  # noqa: BLE001
-        raise NotPlayable(where, "fails", error_line(error)) from None
-
-
-def _in_child(function, *args) -> tuple[str, Any]:
-    """``function(*args)`` in a child process: ``("returned", its value)``, ``("refused", the
-    line of the ConfigError it raised)``, or ``("ended", NotPlayable)`` where the child ended
-    without a word (a native crash: the signal, and the first line the child printed)."""
-    import multiprocessing
-    import tempfile
-
-    context = multiprocessing.get_context("fork" if "fork" in multiprocessing.get_all_start_methods() else "spawn")
-    receiver, sender = context.Pipe(duplex=False)
-    with tempfile.NamedTemporaryFile(prefix="torchrl_esrl-env-") as output:
-        process = context.Process(target=_child, args=(sender, output.name, function, args), daemon=True)
-        process.start()
-        sender.close()
-        try:
-            kind, value = receiver.recv()
-        except EOFError:
-            kind, value = "ended", None
-        process.join()
-        receiver.close()
-        if kind == "failed":  # not a config error: the check itself failed
-            raise RuntimeError(f"the env check failed in its child process:\n{value}")
-        if kind == "ended":
-            code = process.exitcode
-            how = f"signal {signal.Signals(-code).name if -code in signal.valid_signals() else -code}" if code is not None and code < 0 else f"exit code {code}"
-            printed = next((line.strip() for line in Path(output.name).read_text(errors="replace").splitlines() if line.strip()), "")
-            value = NotPlayable("", "ends the process that plays", f"{how}: {printed}"[:300] if printed else how)
-    return kind, value
-
-
-def _child(sender, output: str, function, args) -> None:
-    """The child of :func:`_in_child`: its output to ``output``, its outcome to ``sender``."""
-    import faulthandler
-    import traceback
-
-    fd = os.open(output, os.O_WRONLY | os.O_APPEND)
-    os.dup2(fd, 1)
-    os.dup2(fd, 2)
-    faulthandler.enable(file=2)  # a native crash's first line: what the parent's one line says
-    warnings.simplefilter("ignore")
-    try:
-        outcome = ("returned", function(*args))
-    except ConfigError as error:
-        outcome = ("refused", str(error))
-    except Exception:  # noqa: BLE001 - sent to the parent, which raises it
-        outcome = ("failed", traceback.format_exc())
-    sender.send(outcome)
-    sender.close()
-
-
-def _wrapper_state(env, layers: int) -> dict:
-    """The attributes of the outer ``layers`` wrappers (the user's), but the env each wraps and what
-    cannot be pickled (functions), pickled, by ``Wrapper.attribute``."""
-    import pickle
-
-    state, layer = {}, env
-    for _ in range(layers):
-        for key, value in vars(layer).items():
-            if key == "env":
-                continue
-            try:
-                state[f"{type(layer).__name__}.{key}"] = pickle.dumps(value)
-            except Exception:  # noqa: BLE001 - lambdas, locks: no state a step changes
-                pass
-        layer = layer.env
-    return state
 
 
 def _plain_value(value):
@@ -569,28 +419,6 @@ def _buffer_value(buffer: torch.Tensor) -> tuple:
     if isinstance(buffer, torch.nn.parameter.UninitializedTensorMixin):
         return ("uninitialized",)
     return tuple(buffer.flatten().tolist()) if buffer.numel() <= 1024 else ("tensor", tuple(buffer.shape))
-
-
-def _transform_state(transform) -> dict:
-    """The transforms' state tensors (None where not yet made), by name."""
-    state = {}
-
-    def add(key, value):
-        if isinstance(value, Mapping) or hasattr(value, "items"):  # dicts and TensorDicts of statistics
-            for name, item in value.items():
-                add(f"{key}.{name}", item)
-        elif value is None or isinstance(value, torch.nn.parameter.UninitializedTensorMixin) or not isinstance(value, torch.Tensor):
-            state[key] = None
-        else:
-            state[key] = value.detach().clone()
-
-    for key, value in transform.state_dict(keep_vars=True).items():
-        add(key, value)
-    return state
-
-
-def _same(a, b) -> bool:
-    return (a is None and b is None) or (a is not None and b is not None and a.shape == b.shape and torch.equal(a, b))
 
 
 def as_env_spec(env: "str | EnvSpec", max_episode_steps: int | None = None) -> EnvSpec:
