@@ -159,7 +159,8 @@ run_one() {
   if [ -f "$dir.pauses" ]; then cp "$dir.pauses" "$dest/pauses.txt"; fi  # scripts/pause_runs.sh: held while a benchmark ran
   if [ -f "$dir/${recipe%.py}.log" ]; then cp "$dir/${recipe%.py}.log" "$dest/run.log"; fi  # the run's own log: each iteration's time
   # shellcheck disable=SC2046  # one argument per commit the run's kept attempts ran on
-  scripts/arithmetic_record.sh "$dest" "$recipe" "$env" $(grep -v '(started over)$' "$dest/timing.txt" 2> /dev/null | sed -n 's/.* on commit \([0-9a-f]*\).*/\1/p') \
+  # env -u WORK: tiny_digest.sh reads WORK as the folder to keep its runs in; the set's WORK holds its runs
+  env -u WORK scripts/arithmetic_record.sh "$dest" "$recipe" "$env" $(grep -v '(started over)$' "$dest/timing.txt" 2> /dev/null | sed -n 's/.* on commit \([0-9a-f]*\).*/\1/p') \
     || echo "$env $name: arithmetic.txt not written (scripts/arithmetic_record.sh failed)" >&2
   if [ "$KEEP_CHECKPOINTS" != 1 ]; then rm -rf "$dir/checkpoints"; fi
   if [ "$COMMIT" = 1 ]; then flock "$WORK/.git.lock" sh -c 'git add "$1" && git commit -q -m "results: $2 (experiment=$3)" -- "$1"' _ "$dest" "$env $name" "$PRESET"; fi
