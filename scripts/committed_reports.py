@@ -33,8 +33,9 @@ def _bench_runs() -> list[str]:
 
 # report folder (under docs/results/) -> recipes/report.py's arguments but --out
 REPORTS = {
-    "overview": [*_runs("runs/paper", "runs/miniature", "runs/cem_rl_buffers", "runs/table1"), "--overview", "--started", "docs/results/overview/started.txt"],
+    "overview": [*_runs("runs/paper", "runs/miniature", "runs/quarter", "runs/cem_rl_buffers", "runs/table1"), "--overview", "--started", "docs/results/overview/started.txt"],
     "miniature": _runs("runs/miniature"),
+    "quarter": _runs("runs/quarter"),
     "cem_rl_buffers": [*_runs("runs/cem_rl_buffers"), "--reference", "cem_rl_buffers", "--normalise-by", "cem_rl"],
     "table1": [*_runs("runs/table1"), "--reference", "erl_buffers", "--normalise-by", "erl"],
     "multibuffer": _runs("runs/multibuffer"),
