@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -48,9 +49,14 @@ def adam_with_moments(denormal_every: int | None, seed: int = 0) -> torch.optim.
     return adam
 
 
+def denormal_count(values: np.ndarray) -> int:
+    """How many entries of a float32 array are denormal (non-zero, below the smallest normal float)."""
+    return int(((values != 0) & (np.abs(values) < SMALLEST_NORMAL)).sum())
+
+
 def denormal_fraction(tensors: list[torch.Tensor]) -> float:
     total = sum(t.numel() for t in tensors)
-    return sum(int(((t != 0) & (t.abs() < SMALLEST_NORMAL)).sum()) for t in tensors) / max(total, 1)
+    return sum(denormal_count(t.numpy()) for t in tensors) / max(total, 1)
 
 
 def checkpoint_denormals(checkpoint: Path) -> dict:
@@ -64,7 +70,7 @@ def checkpoint_denormals(checkpoint: Path) -> dict:
         if not isinstance(info, dict) or info.get("dtype") != "torch.float32" or not path.exists():
             continue
         values = np.fromfile(path, dtype=np.float32)
-        count = int(((values != 0) & (np.abs(values) < SMALLEST_NORMAL)).sum())
+        count = denormal_count(values)
         entries, denormal = entries + values.size, denormal + count
         if count:
             found[name] = {"shape": info.get("shape"), "denormal": count, "entries": int(values.size)}
@@ -86,7 +92,7 @@ def main(argv=None) -> dict:
     fractions = {name: denormal_fraction([t for s in adam.state.values() for t in (s["exp_avg"], s["exp_avg_sq"])]) for name, adam in optimizers.items()}
     timed = interleaved({name: on_threads(1, adam.step) for name, adam in optimizers.items()}, args.calls, args.repeats)
     report = {
-        "command": "python -m benchmarks.adam_denormal " + " ".join(argv if argv is not None else __import__("sys").argv[1:]),
+        "command": "python -m benchmarks.adam_denormal " + " ".join(argv if argv is not None else sys.argv[1:]),
         "shapes": STACKED_CRITIC_SHAPES, "threads": 1, "moments_denormal": fractions, "methods": timed,
         "denormal_over_normal": timed["denormal"]["s_per_call"] / timed["normal"]["s_per_call"],
     }
