@@ -8,15 +8,20 @@ slow path for every operation on it. `torch.optim.Adam(fused=True)` on the stack
 the paper's sizes (two critics 23-256-256-1, Walker2d's input), with a fraction of each moment
 tensor's entries denormal (their gradients zero) or none, interleaved in one process on one thread.
 
-    python -m benchmarks.adam_denormal [--fraction 0.125] [--checkpoint <run checkpoint dir>] [--out PATH]
+    python -m benchmarks.adam_denormal [--fraction 0.125] [--checkpoint <run checkpoint dir>] [--updates 400] [--out PATH]
 
 ``--checkpoint`` also counts the denormal entries of a run checkpoint's TD3 state (the float32
 tensors of its ``components/*-td3/state``: networks, targets, Adam's moments), to say what a real
-run carries.
+run carries, and times what they cost where it matters: the run's own TD3 update (its config from
+the checkpoint, :func:`~torchrl_esrl.objectives.learners.make_learner`), restored from the
+checkpoint with its buffers, on batches the run's MultiBuffer samples, 1 thread, interleaved in
+three copies: the moments as saved, the same with ``torch.set_flush_denormal(True)`` around each
+update, and the moments' denormal entries set to zero.
 """
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 import sys
 from pathlib import Path
@@ -28,6 +33,10 @@ from benchmarks.common import interleaved, on_threads, save_report
 
 STACKED_CRITIC_SHAPES = [(2, 256, 23), (2, 256), (2, 256, 256), (2, 256), (2, 1, 256), (2, 1)]
 SMALLEST_NORMAL = float(np.finfo(np.float32).tiny)
+
+
+def adam_moments(optimizer: torch.optim.Optimizer) -> list[torch.Tensor]:
+    return [t for state in optimizer.state.values() for t in (state["exp_avg"], state["exp_avg_sq"])]
 
 
 def adam_with_moments(denormal_every: int | None, seed: int = 0) -> torch.optim.Adam:
@@ -77,19 +86,72 @@ def checkpoint_denormals(checkpoint: Path) -> dict:
     return {"checkpoint": str(checkpoint), "float32_entries": entries, "denormal_entries": denormal, "tensors": found}
 
 
+def zero_denormal_moments(optimizer: torch.optim.Optimizer) -> None:
+    for moment in adam_moments(optimizer):
+        moment[(moment != 0) & (moment.abs() < SMALLEST_NORMAL)] = 0.0
+
+
+def flushing_denormals(fn):
+    """``fn`` run with the calling thread's denormals flushed to zero (inputs and results)."""
+    def call():
+        torch.set_flush_denormal(True)
+        try:
+            fn()
+        finally:
+            torch.set_flush_denormal(False)
+    return call
+
+
+def run_update_methods(checkpoint: Path, batches: int = 64) -> tuple[dict, dict]:
+    """``(learners, methods)``: the run's TD3 learner restored from ``checkpoint`` in three copies
+    (see the module's docstring), and for each a method taking one update on the next of ``batches``
+    batches sampled from the restored MultiBuffer, on 1 thread."""
+    from omegaconf import OmegaConf
+    from torchrl.checkpoint import Checkpoint, StateDictCheckpointAdapter
+
+    from torchrl_esrl.data.multibuffer import MultiBuffer, make_multibuffer
+    from torchrl_esrl.envs import make_train_env
+    from torchrl_esrl.objectives.learners import make_learner
+
+    cfg = OmegaConf.create(json.loads((checkpoint / "manifest.json").read_text())["metadata"]["config"])
+    env, buffer = make_train_env(cfg), make_multibuffer(cfg)
+    learners = {name: make_learner(cfg, env) for name in ("as_saved", "as_saved_flush_denormal", "denormals_zeroed")}
+    for learner in learners.values():
+        components = {"td3": learner, "buffer": buffer}
+        Checkpoint(**components).register_adapter(MultiBuffer, StateDictCheckpointAdapter()).load(checkpoint, components=list(components))
+    for optimizer in (learners["denormals_zeroed"].critic_optimizer, learners["denormals_zeroed"].actor_optimizer):
+        zero_denormal_moments(optimizer)
+    torch.manual_seed(0)
+    sampled = [buffer.sample() for _ in range(batches)]
+
+    def update(learner):
+        position = itertools.count()
+        return lambda: learner.update(sampled[next(position) % batches])
+
+    methods = {name: update(learner) for name, learner in learners.items()}
+    methods["as_saved_flush_denormal"] = flushing_denormals(methods["as_saved_flush_denormal"])
+    return learners, {name: on_threads(1, fn) for name, fn in methods.items()}
+
+
+def learner_denormals(learner) -> int:
+    """Denormal entries of the learner's Adam moments (critic and actor)."""
+    return sum(denormal_count(t.numpy()) for t in adam_moments(learner.critic_optimizer) + adam_moments(learner.actor_optimizer))
+
+
 def main(argv=None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--fraction", type=float, default=0.125, help="share of each moment tensor's entries made denormal")
     parser.add_argument("--calls", type=int, default=300)
     parser.add_argument("--repeats", type=int, default=7)
     parser.add_argument("--checkpoint", type=Path, default=None)
+    parser.add_argument("--updates", type=int, default=400, help="TD3 updates per round on the checkpoint's state")
     parser.add_argument("--out", default="benchmarks/results/adam_denormal.json")
     args = parser.parse_args(argv)
     if not 0 < args.fraction <= 1:
         parser.error(f"--fraction: {args.fraction} (allowed: a share in (0, 1])")
     every = max(1, round(1 / args.fraction))
     optimizers = {"normal": adam_with_moments(None), "denormal": adam_with_moments(every)}
-    fractions = {name: denormal_fraction([t for s in adam.state.values() for t in (s["exp_avg"], s["exp_avg_sq"])]) for name, adam in optimizers.items()}
+    fractions = {name: denormal_fraction(adam_moments(adam)) for name, adam in optimizers.items()}
     timed = interleaved({name: on_threads(1, adam.step) for name, adam in optimizers.items()}, args.calls, args.repeats)
     report = {
         "command": "python -m benchmarks.adam_denormal " + " ".join(argv if argv is not None else sys.argv[1:]),
@@ -98,6 +160,11 @@ def main(argv=None) -> dict:
     }
     if args.checkpoint is not None:
         report["checkpoint"] = checkpoint_denormals(args.checkpoint)
+        learners, methods = run_update_methods(args.checkpoint)
+        report["run_update"] = {"denormal_moments_before": {name: learner_denormals(learner) for name, learner in learners.items()}, "updates_per_round": args.updates,
+                                "methods": interleaved(methods, args.updates, args.repeats)}
+        saved = report["run_update"]["methods"]["as_saved"]["s_per_call"]
+        report["run_update"]["over_as_saved"] = {name: m["s_per_call"] / saved for name, m in report["run_update"]["methods"].items()}
     save_report(report, args.out)
     for name, result in timed.items():
         print(f"fused Adam step, {fractions[name]:.1%} of the moments denormal: {result['s_per_call'] * 1e3:.3f} ms (median of {args.repeats} rounds)")
@@ -105,6 +172,9 @@ def main(argv=None) -> dict:
     if args.checkpoint is not None:
         found = report["checkpoint"]
         print(f"{found['checkpoint']}: {found['denormal_entries']} of {found['float32_entries']} float32 entries of the TD3 state denormal")
+        for name, result in report["run_update"]["methods"].items():
+            print(f"the run's TD3 update, {name} ({report['run_update']['denormal_moments_before'][name]} denormal moments): "
+                  f"{result['s_per_call'] * 1e3:.3f} ms, {report['run_update']['over_as_saved'][name]:.3f}x as saved")
     return report
 
 
