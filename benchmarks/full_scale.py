@@ -36,6 +36,7 @@ from pathlib import Path
 from benchmarks.common import save_report
 
 ROOT = Path(__file__).resolve().parents[1]
+WORK_COLUMNS = ("td3_frames", "es_frames", "td3_updates")  # what the iteration did (metrics.csv, cumulative)
 
 
 def boundary_checkpoints(run_dir: Path) -> dict[int, Path]:
@@ -106,11 +107,16 @@ def time_iteration(tree: Path, recipe: str, run_copy: Path, rows_at_checkpoint: 
             os.killpg(process.pid, signal.SIGKILL)
         process.wait()
         log.close()
-    new, previous = rows[rows_at_checkpoint], rows[rows_at_checkpoint - 1] if rows_at_checkpoint else None
+    new, previous = rows[rows_at_checkpoint], rows[rows_at_checkpoint - 1] if rows_at_checkpoint else {}
+
+    def done(column: str, kind=float):  # the iteration's share of a cumulative column
+        return kind(new[column]) - kind(previous.get(column) or 0)
+
     return {
         "iteration": int(new["iteration"]),
         "eval_return": float(new["eval_return"]),  # the continued run's own result (exact resume: the run's)
-        "iteration_s": float(new["wall_time_s"]) - (float(previous["wall_time_s"]) if previous else 0.0),
+        "iteration_s": done("wall_time_s"),
+        "work": {column: done(column, int) for column in WORK_COLUMNS if column in new},
         "process_s": process_s,
         "load_average": os.getloadavg(),
     }

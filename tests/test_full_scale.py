@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from benchmarks import full_scale
+from benchmarks import full_scale, run_floor
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -34,11 +34,20 @@ def test_an_iteration_continued_from_a_real_checkpoint_is_timed_and_is_the_runs_
     with (run_dir / "metrics.csv").open() as f:
         original = [line.split(",") for line in f.read().splitlines()]
     column = original[0].index("eval_return")
+    work = {key: int(original[2][original[0].index(key)]) - int(original[1][original[0].index(key)]) for key in full_scale.WORK_COLUMNS}
+    assert work["td3_frames"] == 400 and work["es_frames"] > 0 and work["td3_updates"] > 0
     for name in ("now", "base"):
         assert len(report["times"][name]) == 2
         for timed in report["times"][name]:
             assert timed["iteration"] == 1 and 0 < timed["iteration_s"] < timed["process_s"]
             assert timed["eval_return"] == float(original[2][column])  # the second iteration, as the run itself had it
+            assert timed["work"] == work  # the iteration's own frames and updates
+    bounds = json.loads((ROOT / "benchmarks/results/floor_2026-12-05/bounds.json").read_text())  # a real sitting's floor
+    floor = run_floor.against_floor(report, bounds)
+    assert floor["env"] == "HalfCheetah-v5" and len(floor["iterations"]) == 2
+    for row in floor["iterations"]:
+        assert row["floor_s"] == pytest.approx(row["es_physics_s"] + row["td3_physics_s"] + row["td3_products_s"])
+        assert row["over_floor"] == pytest.approx(row["iteration_s"] / row["floor_s"])
     assert len(report["ratio_now_over_base"]["per_round"]) == 2
     with pytest.raises(SystemExit, match="--iteration: 3 has no checkpoint"):  # the last iteration leaves none to run
         full_scale.run(run_dir, iteration=3)
