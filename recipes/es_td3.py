@@ -52,6 +52,7 @@ def train(cfg: DictConfig, run: Run) -> dict:
         cfg, es, es_collector, make_multibuffer(cfg), make_threshold(cfg), on_generation=run.on_es_generation,
     )
     buffer, threshold = es_phase.buffer, es_phase.threshold  # lock-guarded when ES runs in the background
+    run.progress.phase = es_phase.progress  # the ES generations under way, checkpointed between them
     overwrite = make_overwrite_rule(cfg)
     run.start(
         actor, td3=td3, exploration=td3.exploration_policy, td3_env=TD3EnvState(collector), buffer=buffer,

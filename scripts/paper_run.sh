@@ -46,7 +46,7 @@ if [ ! -f "$DIR/summary.json" ]; then
   record="piece $piece commit $(git rev-parse HEAD) start $(date -u +%FT%TZ)"
   t0=$(date +%s)
   # shellcheck disable=SC2086  # RUN is a recipe and its overrides, split on spaces
-  "$PYTHON" $RUN hydra.run.dir="$DIR" checkpoint.every_frames=50000 "$@" \
+  "$PYTHON" $RUN hydra.run.dir="$DIR" checkpoint.every_frames=50000 checkpoint.every_generations=10 "$@" \
     > "$DIR.piece$piece.log" 2>&1 &
   pid=$!
   peak=0 sum=0 count=0 highest=0

@@ -161,7 +161,8 @@ def test_renamed_and_added_keys_come_from_the_schema_and_old_configs_resume_in_t
     from torchrl_esrl.run.config import added_keys, renamed_keys
     from torchrl_esrl.run.resume import in_todays_names
 
-    assert set(renamed_keys()) == {"td3.fast", "mode"} and added_keys() == {"env.kwargs": {}, "env.wrappers": [], "env.transforms": [], "td3.precision": "fp32"}
+    assert set(renamed_keys()) == {"td3.fast", "mode"} and added_keys() == {"env.kwargs": {}, "env.wrappers": [], "env.transforms": [], "td3.precision": "fp32",
+                                                                                  "checkpoint.every_generations": 0}
     old = {"implementation": "fast", "mode": "async", "td3": {"fast": False, "lr": 0.1}, "es": {"sigma": 0.1}, "env": {"id": "Walker2d-v5"}}
     today = in_todays_names(old)
     assert today == {"implementation": "reference", "mode": None, "td3": {"fast": None, "lr": 0.1, "precision": "fp32"}, "es": {"sigma": 0.1, "schedule": "async"},

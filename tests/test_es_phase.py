@@ -1,10 +1,10 @@
 """The ES phase's population step between ask and evaluation (ERL's injection), inline and in the
-background (``es.schedule=async``)."""
+background (``es.schedule=async``); the phase resumed from the generations a checkpoint holds."""
 import numpy as np
 import pytest
 import torch
 
-from torchrl_esrl.algorithm.es_phase import ESPhase, es_phase
+from torchrl_esrl.algorithm.es_phase import ESPhase, GenerationsDone, es_phase
 from torchrl_esrl.collectors.es_collector import ESCollector
 from torchrl_esrl.data.multibuffer import MultiBuffer
 from torchrl_esrl.data.threshold import Threshold
@@ -104,3 +104,20 @@ def test_openai_es_refuses_a_population_its_noise_did_not_make():
 
     with pytest.raises(ValueError, match="not the one the last ask returned"):
         es_phase(es, collector, buffer, threshold, 1, population_step=write_row_0)
+
+
+def test_a_phase_resumed_after_its_first_generation_plays_the_rest_and_returns_all():
+    actor, collector, buffer, threshold = parts()
+    es = OpenES(flat_parameters(actor), population_size=MEMBERS, sigma=0.05, lr=0.01, generator=torch.Generator().manual_seed(1))
+    seen = []
+    first = GenerationsDone(returns=[torch.arange(float(MEMBERS))], work=5)
+    at = GenerationsDone()
+    at.load_state_dict(first.state_dict())  # as a checkpoint holds it
+    assert torch.equal(at.returns[0], first.returns[0]) and at.work == 5
+    returns = es_phase(es, collector, buffer, threshold, 3, on_generation=seen.append, at=at)
+    assert seen == [1, 2] and es.generation == 2  # two generations played: the first was the checkpoint's
+    assert len(returns) == 3 and torch.equal(returns[0], first.returns[0])
+    assert at.returns == [] and at.work == 7  # the next iteration's phase starts from none; the run's count goes on
+    empty = GenerationsDone()
+    empty.load_state_dict(GenerationsDone().state_dict())
+    assert empty.returns == [] and empty.work == 0

@@ -377,6 +377,47 @@ def test_every_recipe_stopped_by_sigterm_at_its_first_stop_point_resumes_to_the_
     assert summary_without_wall_time(tmp_path) == summary_without_wall_time(reference)
 
 
+ES_GENERATION_1 = 200 // 20 + 1  # RESUME's stop points: its ten TD3 batches, then the first ES generation
+
+
+@pytest.mark.e2e
+def test_a_stop_between_es_generations_checkpoints_the_phase_and_resumes_after_it(reference, tmp_path):
+    """SIGTERM as the first ES generation ends: the checkpoint written there holds the generation
+    (the run resumes after it, its TD3 evaluation given back, not played again), and the records
+    are the uninterrupted run's."""
+    stopped = subprocess.run(injected("inject_stop.py", f"stop_point@{ES_GENERATION_1}", "es_td3.py", tmp_path), cwd=ROOT, capture_output=True, text=True, timeout=900, env=ENV)
+    assert stopped.returncode == 128 + signal.SIGTERM, stopped.stderr[-3000:]
+    assert "after ES generation 1/2" in stop_line(stopped.stderr, "SIGTERM")
+    newest = checkpoints(tmp_path)[-1]
+    assert json.loads((tmp_path / "checkpoints" / newest / "manifest.json").read_text())["metadata"]["td3_frames"] == 200
+    result = run(tmp_path)
+    assert result.returncode == 0, result.stderr[-3000:]
+    assert f"resumed at iteration 1 from {tmp_path / 'checkpoints' / newest}" in (tmp_path / "es_td3.log").read_text()
+    assert rows_without_wall_time(tmp_path) == rows_without_wall_time(reference)
+    assert summary_without_wall_time(tmp_path) == summary_without_wall_time(reference)
+
+
+@pytest.mark.e2e
+def test_checkpoints_every_es_generation_resume_to_the_same_records(reference, tmp_path):
+    """``checkpoint.every_generations=1``: one more checkpoint an iteration (after the first of its two
+    generations; the second is the iteration's end); the run resumed from the last iteration's one
+    ends as the uninterrupted one."""
+    result = run(tmp_path, "checkpoint.every_generations=1", "checkpoint.keep_last=20")
+    assert result.returncode == 0, result.stderr[-3000:]
+    written = checkpoints(tmp_path)
+    at = [(m["iteration"], m["td3_frames"]) for m in (json.loads((tmp_path / "checkpoints" / name / "manifest.json").read_text())["metadata"] for name in written)]
+    # every 100 TD3 frames (the second at the TD3 phase's end), after ES generation 1, at the iteration's end
+    assert at == [(0, 100), (0, 200), (0, 200), (1, 200), (1, 300), (1, 400), (1, 400), (2, 400)]
+    assert rows_without_wall_time(tmp_path) == rows_without_wall_time(reference)
+    shutil.rmtree(tmp_path / "checkpoints" / written[-1])  # the last iteration's end: its ES generation checkpoint is left
+    (tmp_path / "summary.json").unlink()
+    resumed = run(tmp_path, "checkpoint.every_generations=1")
+    assert resumed.returncode == 0, resumed.stderr[-3000:]
+    assert f"resumed at iteration 2 from {tmp_path / 'checkpoints' / written[-2]}" in (tmp_path / "es_td3.log").read_text()
+    assert rows_without_wall_time(tmp_path) == rows_without_wall_time(reference)
+    assert summary_without_wall_time(tmp_path) == summary_without_wall_time(reference)
+
+
 def _bad_inputs(script: str) -> list[tuple[str, str]]:
     """``(override, field)``: a wrong type and a value outside its check, for a key of the
     recipe's own sections (of every run's keys, for a recipe without sections of its own)."""

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import functools
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import torch
 
@@ -17,6 +17,32 @@ from torchrl_esrl.errors import check_finite
 PopulationStep = Callable[[torch.Tensor, int], "torch.Tensor | None"]
 
 
+@dataclass
+class GenerationsDone:
+    """The ES phase under way: the returns of the iteration's generations played so far, and the
+    generations played over the run (``work``, which numbers the run's checkpoints). A recipe hands
+    it to the run as ``run.progress.phase``, so that a checkpoint taken between two generations
+    holds it and :func:`es_phase` resumes after them."""
+
+    returns: list[torch.Tensor] = field(default_factory=list)
+    work: int = 0
+
+    def position(self) -> str:
+        return f"after ES generation {len(self.returns)} of the iteration"
+
+    def take(self) -> list[torch.Tensor]:
+        """The iteration's returns; the next iteration's phase starts from none."""
+        returns, self.returns = self.returns, []
+        return returns
+
+    def state_dict(self) -> dict:
+        return {"returns": torch.stack(self.returns) if self.returns else torch.empty(0), "work": self.work}
+
+    def load_state_dict(self, state: dict) -> None:
+        returns = torch.as_tensor(state["returns"])
+        self.returns, self.work = [row.clone() for row in returns] if returns.numel() else [], int(state["work"])
+
+
 def es_phase(
     es,
     es_collector,
@@ -26,6 +52,7 @@ def es_phase(
     shared_buffer: bool = False,
     on_generation: Callable[[int], None] | None = None,
     population_step: PopulationStep | None = None,
+    at: GenerationsDone | None = None,
 ) -> list[torch.Tensor]:
     """Run ``generations`` generations of ``es`` (any :class:`~torchrl_esrl.es.strategy.EvolutionStrategy`:
     ask, the population step, evaluate one episode each, route, tell).
@@ -36,10 +63,12 @@ def es_phase(
     each finished generation (progress display). ``population_step(population, es.generation)``,
     when given, gets a copy of each asked population before its evaluation and writes into it, or
     returns the population to evaluate instead; ``es`` is told that one (OpenAI-ES refuses a changed
-    population: its update reads the noise it asked with). Returns each generation's returns.
+    population: its update reads the noise it asked with). ``at``: the phase as far as a checkpoint
+    had it (default: at its start), advanced generation by generation before ``on_generation``.
+    Returns each generation's returns.
     """
-    returns = []
-    for index in range(generations):
+    at = GenerationsDone() if at is None else at
+    for index in range(len(at.returns), generations):
         population = es.ask()
         if population_step is not None:
             population = population.clone()  # the step's to change: the strategy keeps what it asked
@@ -54,10 +83,11 @@ def es_phase(
             buffer.extend(generation.transitions[generation.member_mask(~good)], "bad")
         es.tell(population, generation.returns)  # raises on a non-finite return
         check_finite("ES mean", es.mean)
-        returns.append(generation.returns)
+        at.returns.append(generation.returns)
+        at.work += 1
         if on_generation is not None:
             on_generation(index)
-    return returns
+    return at.take()
 
 
 @dataclass
@@ -89,7 +119,8 @@ class ESPhase:
         self.background = None
         if background:
             buffer, threshold = BackgroundES.guard(buffer, threshold)
-        run = functools.partial(es_phase, es, es_collector, buffer, threshold, int(generations), bool(shared_buffer), on_generation, population_step)
+        self.progress = GenerationsDone()  # the run's ``progress.phase``: checkpoints between generations resume after them
+        run = functools.partial(es_phase, es, es_collector, buffer, threshold, int(generations), bool(shared_buffer), on_generation, population_step, self.progress)
         if background:
             self.background = BackgroundES(run)
         self.es, self.es_collector, self.buffer, self.threshold, self.run = es, es_collector, buffer, threshold, run

@@ -138,10 +138,12 @@ class RunCheckpoint:
         components: name -> object with ``state_dict``/``load_state_dict``.
     """
 
-    def __init__(self, run_dir: str | Path, config: dict, every_frames: int, keep_last: int, algorithm: str | None = None, expected_bytes: int = 0, **components):
+    def __init__(self, run_dir: str | Path, config: dict, every_frames: int, keep_last: int, algorithm: str | None = None, expected_bytes: int = 0,
+                 every_generations: int = 0, **components):
         self.run_dir = Path(run_dir)
         self.expected_bytes = int(expected_bytes)  # one checkpoint's size at most; 0: no check of the free space
         self.every_frames = int(every_frames)
+        self.every_generations = int(every_generations)
         self.rotation = CheckpointRotation(self.run_dir / CHECKPOINT_DIR, keep_last=keep_last)
         self.progress: RunProgress = components["progress"]
         self.config = config
@@ -214,6 +216,12 @@ class RunCheckpoint:
         """``td3_phase`` ``on_batch`` hook: save once every ``every_frames`` TD3 frames."""
         if self.every_frames and self.progress.frames_now // self.every_frames > self._last_frames // self.every_frames:
             self.save()
+
+    def maybe_save_after_generation(self, done: int, total: int) -> None:
+        """After the ES phase's ``done``-th generation of ``total`` in the iteration (run inline):
+        save once every ``every_generations`` of them, the last excepted (the iteration's end saves)."""
+        if self.every_generations and done % self.every_generations == 0 and done < total:
+            self.save_if_new()
 
     def restore(self, path: str | Path | None = None) -> Path | None:
         """Load ``path`` into the live components; by default the newest checkpoint that can be

@@ -38,6 +38,7 @@ import os
 import shlex
 import signal
 import sys
+import threading
 from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -96,7 +97,8 @@ class Run(RunHarness):
         cfg = self.cfg
         config = OmegaConf.to_container(cfg, resolve=True)
         size = estimate(self.holdings(cfg, env_sizes(EnvSpec.from_config(cfg.env)))).checkpoint  # checked before each save
-        self.checkpoint = RunCheckpoint(self.run_dir, config, cfg.checkpoint.every_frames, cfg.checkpoint.keep_last, algorithm=self.algorithm, expected_bytes=size, progress=self.progress, evaluator=self.evaluator, **components)
+        self.checkpoint = RunCheckpoint(self.run_dir, config, cfg.checkpoint.every_frames, cfg.checkpoint.keep_last, algorithm=self.algorithm, expected_bytes=size,
+                                        every_generations=cfg.checkpoint.every_generations, progress=self.progress, evaluator=self.evaluator, **components)
         restored = self.checkpoint.restore()
         if restored is not None and self.log_.path.exists():
             rows = read_metrics(self.log_.path)  # as of the checkpoint: the summary's frame counts if no iteration is left
@@ -139,10 +141,30 @@ class Run(RunHarness):
             self.show_phase(f"TD3 {collected}/{total} frames")
 
     def on_es_generation(self, index: int) -> None:
-        """``es_phase``'s ``on_generation`` hook: the phase on the progress bar; a stop point
-        (without a checkpoint: the ES phase's state is not checkpointed mid-phase)."""
-        self.show_phase(f"ES {index + 1}/{self.cfg.es.generations_per_iteration} generations")
-        self.stop.check(f"after ES generation {index + 1}/{self.cfg.es.generations_per_iteration}")
+        """``es_phase``'s ``on_generation`` hook: the phase on the progress bar, a checkpoint every
+        ``checkpoint.every_generations`` generations, and a stop point (with a checkpoint). Both
+        checkpoints are taken where the ES phase runs inline (on the main thread), and hold the
+        phase where the recipe hands it to the run (:class:`~torchrl_esrl.algorithm.es_phase.GenerationsDone`
+        as ``progress.phase``); a stop in a phase run alongside the TD3 phase resumes from the last one."""
+        total = int(self.cfg.es.generations_per_iteration)
+        self.show_phase(f"ES {index + 1}/{total} generations")
+        inline = threading.current_thread() is threading.main_thread()
+        if inline and self.progress.phase is not None:
+            self.checkpoint.maybe_save_after_generation(index + 1, total)
+        self.stop.check(f"after ES generation {index + 1}/{total}", self.checkpoint.save_if_new if self.progress.phase is not None else None)
+
+    def evaluate(self, vector: torch.Tensor, episodes: int | None = None, seeds=None) -> float:
+        """:meth:`RunHarness.evaluate`; an evaluation of the per-iteration stream that the restored
+        checkpoint already counts (the run stopped after it, within the iteration) is not played
+        again: its recorded return is given, and the evaluator's stream goes on from the checkpoint."""
+        if seeds is not None:
+            return super().evaluate(vector, episodes, seeds)
+        recorded = self.progress.recorded_evaluation()
+        if recorded is not None:
+            return recorded
+        value = super().evaluate(vector, episodes)
+        self.progress.record_evaluation(value)
+        return value
 
     def stop_point(self, where: str | Callable[[], str]) -> None:
         """A stop point where the run's state is whole (its components and ``progress.phase``),

@@ -43,9 +43,11 @@ def _field(default, check: dict | None = None, **metadata):
     return field(default=default, metadata=metadata)
 
 
-def number(default, low=None, high=None, *, low_open: bool = False, high_open: bool = False, integer: bool = False):
-    """A finite number (an integer if ``integer``) in the given bounds; ``None`` passes where the type is Optional."""
-    return _field(default, {"kind": "number", "low": low, "high": high, "low_open": low_open, "high_open": high_open, "integer": integer})
+def number(default, low=None, high=None, *, low_open: bool = False, high_open: bool = False, integer: bool = False, added: bool = False):
+    """A finite number (an integer if ``integer``) in the given bounds; ``None`` passes where the type is Optional;
+    ``added``: as :func:`added`."""
+    return _field(default, {"kind": "number", "low": low, "high": high, "low_open": low_open, "high_open": high_open, "integer": integer},
+                  **({"added": True} if added else {}))
 
 
 def positive(default, integer: bool = False):
@@ -206,6 +208,7 @@ class CheckpointConfig:
     """<run dir>/checkpoints; written at every iteration boundary."""
 
     every_frames: int = number(0, low=0, integer=True)  # also every N TD3 frames (0: off)
+    every_generations: int = number(0, low=0, integer=True, added=True)  # also every N ES generations of an iteration's ES phase run inline (0: off)
     keep_last: int = count(2)
 
 
