@@ -913,9 +913,10 @@ def test_ctrl_c_and_sigterm_stop_cleanly_and_the_same_command_resumes_to_the_sam
     line = stop_line(stderr, "SIGINT")
     assert f"to resume: {sys.executable} " in line and line.endswith(f"hydra.run.dir={tmp_path}") and "Traceback" not in stderr
     assert f"] {line}" in (tmp_path / "es_td3.log").read_text()  # the run's record says it too
-    # SIGTERM in iteration 2's TD3 phase (after its first mid-phase checkpoint, frame 300)
+    # SIGTERM in iteration 2's TD3 phase (after its first mid-phase checkpoint, frame 300: numbered
+    # 303, its frames, iterations and ES generations)
     process = start(tmp_path)
-    wait_for(lambda: "checkpoint-000000000301" in checkpoints(tmp_path), process)
+    wait_for(lambda: "checkpoint-000000000303" in checkpoints(tmp_path), process)
     process.send_signal(signal.SIGTERM)
     _, stderr = process.communicate(timeout=120)
     assert process.returncode == 128 + signal.SIGTERM, stderr[-3000:]
