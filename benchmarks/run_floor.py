@@ -4,8 +4,10 @@ its time and the work it did) and ``benchmarks.bounds`` minutes apart (the floor
 
 The floor of an iteration is its essential work at the speed of its slowest unavoidable parts:
 
-- its ES frames at raw ``mujoco.batch`` physics on both cores (``bounds``' per-step physics of one
-  chunk of mirrored pairs on one core, fixed controls);
+- its ES frames at raw ``mujoco.batch`` physics on both cores: ``bounds``' per-step physics of one
+  chunk of mirrored pairs on one core (fixed controls, its first steps from reset), or with
+  ``--es-population``, that record's ``raw`` rate on both cores (fixed controls, whole episodes:
+  on Ant, whose contacts cost more later in an episode, the slower and truer of the two);
 - its TD3 frames at the same physics per member step, on one core (one env, stepped in turn);
 - its TD3 updates at the time of their float32 matrix products alone (``bounds``' products, the
   best of its thread counts).
@@ -14,7 +16,8 @@ Everything else (the population's forward, the update's other work, sampling, ev
 checkpoints) is above the floor, so the floor is a lower bound and ``iteration / floor`` is at least
 the run's distance from it.
 
-Usage: ``python -m benchmarks.run_floor --full-scale <full_scale.json> --bounds <bounds.json> [--out PATH]``
+Usage: ``python -m benchmarks.run_floor --full-scale <full_scale.json> --bounds <bounds.json>
+[--es-population <es_population.json>] [--out PATH]``
 """
 from __future__ import annotations
 
@@ -53,19 +56,23 @@ def env_of(full_scale: dict) -> str:
     return OmegaConf.load(Path(full_scale["run_dir"]) / ".hydra" / "config.yaml").env.id
 
 
-def against_floor(full_scale: dict, bounds: dict, name: str = "now") -> dict:
-    """Each timed iteration of ``full_scale``'s ``name`` tree against the floor ``bounds`` gives for its task."""
+def against_floor(full_scale: dict, bounds: dict, es_population: dict | None = None, name: str = "now") -> dict:
+    """Each timed iteration of ``full_scale``'s ``name`` tree against the floor ``bounds`` (and
+    ``es_population``'s raw physics, where given) gives for its task."""
     env = env_of(full_scale)
     td3, es = bounds["td3"][env], bounds["es"][env]
     products = {key: method["s_per_call"] for key, method in td3["methods"].items() if key.startswith("products_") and "bf16" not in key}
     products_key = min(products, key=products.get)
+    physics, members, source = es["per_step_s"]["physics"], 2 * es["pairs"], "bounds: one chunk's first steps"
+    if es_population is not None:  # one member step per core at the raw rate of both cores
+        physics, members, source = CORES / es_population["envs"][env]["raw"]["steps_per_s"], 1, "es_population: raw, whole episodes"
     rows = []
     for timed in full_scale["times"][name]:
-        parts = floor_parts(timed["work"], es["per_step_s"]["physics"], 2 * es["pairs"], products[products_key])
+        parts = floor_parts(timed["work"], physics, members, products[products_key])
         rows.append({**timed, **parts, "over_floor": timed["iteration_s"] / parts["floor_s"]})
     return {
         "env": env, "from_iteration": full_scale["from_iteration"], "commit": full_scale["commits"][name],
-        "physics_per_step_s": es["per_step_s"]["physics"], "members_per_chunk": 2 * es["pairs"],
+        "physics": source, "physics_per_step_s": physics, "members_per_step": members,
         "products": products_key, "products_s": products[products_key], "iterations": rows,
         "over_floor": statistics.median(row["over_floor"] for row in rows),
         "full_scale_machine": full_scale.get("machine"), "bounds_machine": bounds.get("machine"),
@@ -76,14 +83,16 @@ def main(argv=None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--full-scale", type=Path, required=True)
     parser.add_argument("--bounds", type=Path, required=True)
+    parser.add_argument("--es-population", type=Path, default=None, help="its raw physics instead of bounds' chunk")
     parser.add_argument("--out", default=None)
     args = parser.parse_args(argv)
     full_scale, bounds = (json.loads(path.read_text()) for path in (args.full_scale, args.bounds))
-    report = save_report(against_floor(full_scale, bounds), args.out)
+    es_population = json.loads(args.es_population.read_text()) if args.es_population else None
+    report = save_report(against_floor(full_scale, bounds, es_population), args.out)
     for row in report["iterations"]:
         print(f"{report['env']} iteration {row['iteration'] + 1}: {row['iteration_s']:,.1f} s against a floor of {row['floor_s']:,.1f} s "
               f"(ES physics {row['es_physics_s']:,.1f}, TD3 physics {row['td3_physics_s']:,.1f}, update products {row['td3_products_s']:,.1f}): "
-              f"{row['over_floor']:.2f}x")
+              f"{row['over_floor']:.2f}x ({report['physics']})")
     return report
 
 
