@@ -48,6 +48,13 @@ def test_an_iteration_continued_from_a_real_checkpoint_is_timed_and_is_the_runs_
     for row in floor["iterations"]:
         assert row["floor_s"] == pytest.approx(row["es_physics_s"] + row["td3_physics_s"] + row["td3_products_s"])
         assert row["over_floor"] == pytest.approx(row["iteration_s"] / row["floor_s"])
+    es_population = json.loads((ROOT / "benchmarks/results/floor_2026-12-05/es_population_shared_center.json").read_text())
+    raw = es_population["envs"]["HalfCheetah-v5"]["raw"]["steps_per_s"]
+    whole_episodes = run_floor.against_floor(report, bounds, es_population)
+    assert whole_episodes["physics"].startswith("es_population")
+    for row in whole_episodes["iterations"]:
+        assert row["es_physics_s"] == pytest.approx(work["es_frames"] / raw)  # both cores at the raw rate
+        assert row["td3_physics_s"] == pytest.approx(work["td3_frames"] * 2 / raw)  # one core
     assert len(report["ratio_now_over_base"]["per_round"]) == 2
     with pytest.raises(SystemExit, match="--iteration: 3 has no checkpoint"):  # the last iteration leaves none to run
         full_scale.run(run_dir, iteration=3)
