@@ -116,9 +116,12 @@ def run_update_methods(checkpoint: Path, batches: int = 64) -> tuple[dict, dict]
     cfg = OmegaConf.create(json.loads((checkpoint / "manifest.json").read_text())["metadata"]["config"])
     env, buffer = make_train_env(cfg), make_multibuffer(cfg)
     learners = {name: make_learner(cfg, env) for name in ("as_saved", "as_saved_flush_denormal", "denormals_zeroed")}
-    for learner in learners.values():
-        components = {"td3": learner, "buffer": buffer}
+    def restore(**components):
         Checkpoint(**components).register_adapter(MultiBuffer, StateDictCheckpointAdapter()).load(checkpoint, components=list(components))
+
+    restore(buffer=buffer)  # once: the copies share it
+    for learner in learners.values():
+        restore(td3=learner)
     for optimizer in (learners["denormals_zeroed"].critic_optimizer, learners["denormals_zeroed"].actor_optimizer):
         zero_denormal_moments(optimizer)
     torch.manual_seed(0)
