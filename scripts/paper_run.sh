@@ -6,8 +6,8 @@
 #
 # and any other with RUN (a recipe and its overrides), e.g. RUN="recipes/td3.py env=walker2d seed=0".
 # Each call runs one piece: the run continues from its own checkpoints (hydra.run.dir=run_dir; a
-# checkpoint every 50k TD3 frames as well as at every iteration boundary, so a killed piece loses at
-# most one ES phase). While a piece runs, <run_dir>.piece<N>.alive holds its commit, start, seconds so
+# checkpoint every 50k TD3 frames and, in ES-TD3's ES phase, every 10 generations, as well as at every
+# iteration boundary, so a killed piece loses at most 50k TD3 frames or 10 generations). While a piece runs, <run_dir>.piece<N>.alive holds its commit, start, seconds so
 # far, peak resident memory (VmHWM) and the machine's 1-minute load average so far (mean and largest,
 # sampled every 2 s), rewritten every 2 s, so a piece killed with its session still has a record.
 # <run_dir>.pieces gets one line per piece: that record and how it ended (exit status, or "killed" for a
