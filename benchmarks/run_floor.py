@@ -28,7 +28,7 @@ from pathlib import Path
 
 from benchmarks.common import save_report
 
-CORES = 2
+CORES = 2  # where a bounds record names no core count
 
 
 def floor_parts(work: dict, physics_per_step_s: float, members: int, products_s: float, cores: int = CORES) -> dict:
@@ -63,12 +63,13 @@ def against_floor(full_scale: dict, bounds: dict, es_population: dict | None = N
     td3, es = bounds["td3"][env], bounds["es"][env]
     products = {key: method["s_per_call"] for key, method in td3["methods"].items() if key.startswith("products_") and "bf16" not in key}
     products_key = min(products, key=products.get)
+    cores = int(bounds.get("machine", {}).get("cpus") or CORES)  # the cores the floor's physics ran on
     physics, members, source = es["per_step_s"]["physics"], 2 * es["pairs"], "bounds: one chunk's first steps"
-    if es_population is not None:  # one member step per core at the raw rate of both cores
-        physics, members, source = CORES / es_population["envs"][env]["raw"]["steps_per_s"], 1, "es_population: raw, whole episodes"
+    if es_population is not None:  # one member step per core at the raw rate of all cores
+        physics, members, source = cores / es_population["envs"][env]["raw"]["steps_per_s"], 1, "es_population: raw, whole episodes"
     rows = []
     for timed in full_scale["times"][name]:
-        parts = floor_parts(timed["work"], physics, members, products[products_key])
+        parts = floor_parts(timed["work"], physics, members, products[products_key], cores)
         rows.append({**timed, **parts, "over_floor": timed["iteration_s"] / parts["floor_s"]})
     return {
         "env": env, "from_iteration": full_scale["from_iteration"], "commit": full_scale["commits"][name],
