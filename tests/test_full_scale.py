@@ -55,7 +55,20 @@ def test_an_iteration_continued_from_a_real_checkpoint_is_timed_and_is_the_runs_
     for row in whole_episodes["iterations"]:
         assert row["es_physics_s"] == pytest.approx(work["es_frames"] / raw)  # both cores at the raw rate
         assert row["td3_physics_s"] == pytest.approx(work["td3_frames"] * 2 / raw)  # one core
+    replay = es_population["envs"]["HalfCheetah-v5"]["raw_replay"]["steps_per_s"]
+    replayed = run_floor.against_floor(report, bounds, es_population, physics="raw_replay")
+    assert replayed["physics"].startswith("es_population: raw_replay") and replay != raw
+    for row in replayed["iterations"]:
+        assert row["es_physics_s"] == pytest.approx(work["es_frames"] / replay)
     assert len(report["ratio_now_over_base"]["per_round"]) == 2
     with pytest.raises(SystemExit, match="--iteration: 3 has no checkpoint"):  # the last iteration leaves none to run
         full_scale.run(run_dir, iteration=3)
     assert subprocess.run(["git", "worktree", "list"], cwd=ROOT, capture_output=True, text=True).stdout == worktrees  # the base's removed
+
+
+def test_run_floor_refuses_a_physics_rate_without_its_record(tmp_path, capsys):
+    """``--physics`` picks one of ``--es-population``'s rates: without that record, one line and exit 2."""
+    with pytest.raises(SystemExit) as exit_info:
+        run_floor.main(["--full-scale", str(tmp_path / "f.json"), "--bounds", str(tmp_path / "b.json"), "--physics", "raw_replay"])
+    assert exit_info.value.code == 2
+    assert "--physics: needs --es-population" in capsys.readouterr().err
