@@ -89,7 +89,7 @@ def main(argv=None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--full-scale", type=Path, required=True)
     parser.add_argument("--bounds", type=Path, required=True)
-    parser.add_argument("--es-population", type=Path, default=None, help="its raw physics instead of bounds' chunk")
+    parser.add_argument("--es-population", type=Path, default=None, help="its physics (--physics) instead of bounds' chunk")
     parser.add_argument("--physics", choices=sorted(PHYSICS), default="raw", help="which of --es-population's rates (default: raw)")
     parser.add_argument("--out", default=None)
     args = parser.parse_args(argv)
