@@ -18,17 +18,17 @@ smoothing 0.2 clipped at 0.5, policy delay 2), all read from conf/config.yaml. M
                  on a batch of ours' buffers, as ``benchmarks.bounds`` times it), on 1 thread and on
                  torch's default count
 
-Each implementation first fills its buffer with ``--prefill`` frames (the peers with uniform random
-actions, as their programs start; ours acting, as the paper run does), untimed, and plays one
-untimed round. Then ``--repeats`` rounds, each running ``--frames`` learning frames of every method
-in turn, so that the machine's
-drift falls on all alike; every implementation runs on the job's cores (``torchrl_esrl.threads.job_cores``, what
-``td3.num_threads=null`` gives ours). Per method: ms per frame
-(median of the rounds, and every round), ``speedup_vs_<method>`` = that method's time / ours,
-``best_peer`` and ours against it; each implementation's TD3 values and network sizes as built,
-its last critic loss and whether its actor and critic parameters moved in the rounds; the load
-average at start and end. The record names
-the processor (``machine.cpu``).
+Each method is built and played in a process of its own (:class:`Process`; the plain updates' over
+a buffer of ours built there), driven from here. Each implementation first fills its buffer with
+``--prefill`` frames (the peers with uniform random actions, as their programs start; ours acting,
+as the paper run does), untimed, and plays one untimed round. Then ``--repeats`` rounds, each
+running ``--frames`` learning frames of every method in turn, so that the machine's drift falls on
+all alike; every implementation runs on the job's cores (``torchrl_esrl.threads.job_cores``, what
+``td3.num_threads=null`` gives ours). Per method: ms per frame (median of the rounds, and every
+round), ``speedup_vs_<method>`` = that method's time / ours, ``best_peer`` and ours against it;
+each implementation's TD3 values and network sizes as built, its last critic loss and whether its
+actor and critic parameters moved in the rounds; the load average at start and end. The record
+names the processor (``machine.cpu``).
 
 Usage: ``python -m benchmarks.peers [--envs Walker2d-v5 HalfCheetah-v5] [--frames N] [--repeats R]
 [--prefill P] [--capacity C] [--quick] [--out PATH]``. Hold running recipes first
@@ -37,6 +37,7 @@ Usage: ``python -m benchmarks.peers [--envs Walker2d-v5 HalfCheetah-v5] [--frame
 from __future__ import annotations
 
 import argparse
+import multiprocessing
 import os
 
 from benchmarks.common import fill, interleaved, on_threads, save_report  # sets OMP_WAIT_POLICY, first
@@ -193,48 +194,110 @@ class TorchRLStock(Peer):
         self.program.shutdown()
 
 
-def measure(env_id: str, frames: int, repeats: int, prefill: int, capacity: int) -> dict:
-    default_threads = job_cores()  # a fresh process's torch default here; ours' td3.num_threads=null is the same
+class PlainUpdates:
+    """The plain eager update alone (``benchmarks.td3_update.PlainTD3``) on batches of ours' buffers,
+    one update per frame, no env step."""
+
+    def __init__(self, cfg, prefill: int):
+        self.ours = Ours(cfg, prefill)
+        torch.manual_seed(cfg.seed)
+        self.plain = PlainTD3(self.ours.obs_dim, self.ours.act_dim)
+
+    def frames(self, count: int) -> None:
+        for _ in range(count):
+            self.plain.update(self.ours.buffer.sample())
+
+    def shutdown(self) -> None:
+        self.ours.shutdown()
+
+
+def build(method: str, env_id: str, prefill: int, capacity: int):
+    """``(implementation, its torch threads)`` of a method's name (``ours``, a peer, ``plain_update_<n>thread[s]``)."""
     cfg = paper_config(env_groups()[env_id], capacity)
     cfg.buffer.min_size = prefill
-    implementations = {"ours": Ours(cfg, prefill), "cleanrl_style": CleanRLStyle(cfg, prefill, capacity), "torchrl_stock": TorchRLStock(cfg, prefill, capacity)}
-    ours = implementations["ours"]
-    threads = {"ours": ours.td3.num_threads, **{name: default_threads for name in PEERS}}
-    methods = {name: on_threads(threads[name], lambda impl=impl: impl.frames(frames)) for name, impl in implementations.items()}
-    torch.manual_seed(cfg.seed)
-    for count in sorted({1, default_threads}):
-        plain, name = PlainTD3(ours.obs_dim, ours.act_dim), f"plain_update_{count}thread{'s' if count > 1 else ''}"
+    if method == "ours":
+        ours = Ours(cfg, prefill)
+        return ours, ours.td3.num_threads
+    if method == "cleanrl_style":
+        return CleanRLStyle(cfg, prefill, capacity), job_cores()
+    if method == "torchrl_stock":
+        return TorchRLStock(cfg, prefill, capacity), job_cores()
+    return PlainUpdates(cfg, prefill), int(method.removeprefix("plain_update_").split("thread")[0])
 
-        def updates(plain=plain):
-            for _ in range(frames):
-                plain.update(ours.buffer.sample())
 
-        methods[name], threads[name] = on_threads(count, updates), count
-    before = {name: {part: _vector(p) for part, p in impl.parameters().items()} for name, impl in implementations.items()}
+def serve(method: str, env_id: str, prefill: int, capacity: int, connection) -> None:
+    """A method's process: builds it, then plays the frame counts it receives, each on its threads,
+    answering each when done; on ``None``, sends its report (:meth:`Process.finish`) and ends."""
+    quiet_logs()
+    implementation, threads = build(method, env_id, prefill, capacity)
+    parts = getattr(implementation, "parameters", dict)
+    before = {part: _vector(p) for part, p in parts().items()}
+    connection.send(threads)
+    while (count := connection.recv()) is not None:
+        on_threads(threads, lambda: implementation.frames(count))()
+        connection.send(None)
+    report = {}
+    if before:  # an implementation, not the plain update
+        report = {"critic_loss": implementation.critic_loss(), "hyperparameters": implementation.hyperparameters(),
+                  "parameters_moved": {part: not torch.equal(before[part], _vector(p)) for part, p in parts().items()},
+                  "parameter_count": {part: sum(x.numel() for x in p) for part, p in parts().items()}}
+    implementation.shutdown()
+    connection.send(report)
+
+
+class Process:
+    """A method built and played in a process of its own (spawned), driven by :func:`interleaved` from here.
+
+    One process would let each implementation's threads slow the others': a process whose threads
+    other than the main one have run torch's OpenMP regions (TorchRL's prefetching buffer samples
+    on three) holds more OpenMP threads than cores, and libgomp then makes every thread of every
+    later parallel region sleep between regions instead of spinning, which multiplied a 2-thread
+    update's time by about 3 on one processor (docs/performance_peers.md).
+    """
+
+    def __init__(self, method: str, env_id: str, prefill: int, capacity: int):
+        context = multiprocessing.get_context("spawn")
+        self.connection, child = context.Pipe()
+        self.process = context.Process(target=serve, args=(method, env_id, prefill, capacity, child), daemon=True)
+        self.process.start()
+        self.threads = self.connection.recv()
+
+    def frames(self, count: int) -> None:
+        self.connection.send(count)
+        self.connection.recv()
+
+    def finish(self) -> dict:
+        """The implementation's critic loss, TD3 values, parameter counts and whether they moved ({} for a plain update)."""
+        self.connection.send(None)
+        report = self.connection.recv()
+        self.process.join()
+        return report
+
+
+def measure(env_id: str, frames: int, repeats: int, prefill: int, capacity: int) -> dict:
+    names = ["ours", *PEERS, *(f"plain_update_{count}thread{'s' if count > 1 else ''}" for count in sorted({1, job_cores()}))]
+    processes = {name: Process(name, env_id, prefill, capacity) for name in names}
+    methods = {name: lambda process=process: process.frames(frames) for name, process in processes.items()}
     timings = {
         name: {"ms_per_frame": t["s_per_call"] / frames * 1e3, "best_ms_per_frame": t["best_s_per_call"] / frames * 1e3,
-               "rounds_ms_per_frame": [seconds / frames * 1e3 for seconds in t["rounds_s_per_call"]], "torch_threads": threads[name]}
+               "rounds_ms_per_frame": [seconds / frames * 1e3 for seconds in t["rounds_s_per_call"]], "torch_threads": processes[name].threads}
         for name, t in interleaved(methods, calls=1, repeats=repeats, warmup=1).items()  # one call: `frames` frames
     }
+    finished = {name: process.finish() for name, process in processes.items()}
+    implementations = {name: finished[name] for name in ("ours", *PEERS)}
     ours_ms = timings["ours"]["ms_per_frame"]
     plain_names = [name for name in timings if name.startswith("plain_update")]
     best_peer = min(PEERS, key=lambda name: timings[name]["ms_per_frame"])
     best_plain = min(plain_names, key=lambda name: timings[name]["ms_per_frame"])
-    report = {
-        "env": env_id, "frames_per_round": frames, "repeats": repeats, "prefill": prefill, "capacity": capacity, "batch_size": cfg.buffer.batch_size,
+    return {
+        "env": env_id, "frames_per_round": frames, "repeats": repeats, "prefill": prefill, "capacity": capacity, "batch_size": paper_config().buffer.batch_size,
+        "processes": "one per method",
         "methods": timings,
         **{f"speedup_vs_{name}": timings[name]["ms_per_frame"] / ours_ms for name in timings if name != "ours"},
         "best_peer": best_peer, "speedup_vs_best_peer": timings[best_peer]["ms_per_frame"] / ours_ms,
         "best_plain_update": best_plain, "speedup_vs_best_plain_update": timings[best_plain]["ms_per_frame"] / ours_ms,
-        "critic_loss": {name: impl.critic_loss() for name, impl in implementations.items()},
-        "parameters_moved": {name: {part: not torch.equal(before[name][part], _vector(p)) for part, p in impl.parameters().items()}
-                             for name, impl in implementations.items()},
-        "hyperparameters": {name: impl.hyperparameters() for name, impl in implementations.items()},
-        "parameter_count": {name: {part: sum(x.numel() for x in p) for part, p in impl.parameters().items()} for name, impl in implementations.items()},
+        **{key: {name: report[key] for name, report in implementations.items()} for key in ("critic_loss", "parameters_moved", "hyperparameters", "parameter_count")},
     }
-    for impl in implementations.values():
-        impl.shutdown()
-    return report
 
 
 def main(argv=None) -> dict:
