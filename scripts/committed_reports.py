@@ -4,6 +4,8 @@ it from its records, and the results page's copies of their tables.
     PYTHONPATH=. python scripts/committed_reports.py                 # every report, then the page
     PYTHONPATH=. python scripts/committed_reports.py cem_rl_buffers  # one report, then the page
     PYTHONPATH=. python scripts/committed_reports.py --list          # the commands, one a line
+    PYTHONPATH=. python scripts/committed_reports.py --reading docs/results/runs/quarter/walker2d/td3_seed3
+                                                   # the reports that read this record, then the page
 
 docs/results.md copies generated tables between ``<!-- <path>.md -->`` and ``<!-- /<path>.md -->``
 (paths under docs/results/); after the reports are written, each copy is replaced by its file.
@@ -52,6 +54,15 @@ def report_arguments(folder: str, out: str | Path | None = None) -> list[str]:
     return [*REPORTS[folder], "--out", str(out if out is not None else Path("docs/results") / folder)]
 
 
+def reading(path: str | Path) -> list[str]:
+    """The report folders whose records include ``path`` (a run's record folder, or a folder of them)."""
+    path = (ROOT / path).resolve()
+    return [folder for folder, arguments in REPORTS.items()
+            if any(path == (ROOT / argument).resolve() or (ROOT / argument).resolve() in path.parents
+                   or (ROOT / argument).resolve().is_relative_to(path)
+                   for argument in arguments if argument.startswith("docs/results/runs"))]
+
+
 def sync_page(page: Path = RESULTS_PAGE, results: Path = RESULTS) -> list[str]:
     """Replace every generated table the page copies with its file; returns the paths replaced."""
     replaced = []
@@ -68,7 +79,13 @@ def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("folders", nargs="*", help=f"reports to write (default: all of {', '.join(REPORTS)})")
     parser.add_argument("--list", action="store_true", help="print each report's command and stop")
+    parser.add_argument("--reading", metavar="PATH", help="write the reports whose records include PATH (instead of folders)")
     args = parser.parse_args(argv)
+    if args.reading is not None:
+        args.folders = reading(args.reading)
+        if not args.folders:
+            print(f"{args.reading}: no committed report reads it", file=sys.stderr)
+            return
     unknown = [folder for folder in args.folders if folder not in REPORTS]
     if unknown:
         print(f"config error: folders: {', '.join(unknown)} (allowed: {', '.join(REPORTS)})", file=sys.stderr)

@@ -29,11 +29,12 @@
 # Resumes from what exists: a run whose record is already in $RESULTS is skipped; one that finished in
 # work_dir is recorded; one killed after a checkpoint continues from it (same hydra.run.dir); one killed
 # before any checkpoint was complete starts over. Every finished run's metrics.csv, summary.json and
-# config.yaml are copied to $RESULTS/<env>/<row>_seed<k>/ (commit them; COMMIT=1 commits each one as it
-# lands), with timing.txt: one line per attempt (exit status, seconds of the command, the commit it ran
-# on, its start (UTC), the mean and largest 1-minute load average over it, sampled every 2 s; a
-# started-over run's earlier attempts first, marked "(started over)"), so a resumed run's wall-clock is
-# the sum of its lines; an attempt killed with its script or session has its line too, marked "exit killed",
+# config.yaml are copied to $RESULTS/<env>/<row>_seed<k>/ (commit each with the reports that read it,
+# written by scripts/committed_reports.py --reading <record>; COMMIT=1 does both as each one lands),
+# with timing.txt: one line per attempt (exit status, seconds of the command, the commit it ran on,
+# its start (UTC), the mean and largest 1-minute load average over it, sampled every 2 s; a started-over
+# run's earlier attempts first, marked "(started over)"), so a resumed run's wall-clock is the sum of its
+# lines; an attempt killed with its script or session has its line too, marked "exit killed",
 # from <run_dir>.alive, which holds the running attempt's line, rewritten every 2 s, and which the next attempt
 # folds into timing.txt; pauses.txt where scripts/pause_runs.sh held the run (its seconds include the held
 # time, which recipes/report.py subtracts: timing.md); run.log, the run's own log (each iteration's end,
@@ -163,7 +164,9 @@ run_one() {
   env -u WORK scripts/arithmetic_record.sh "$dest" "$recipe" "$env" $(grep -v '(started over)$' "$dest/timing.txt" 2> /dev/null | sed -n 's/.* on commit \([0-9a-f]*\).*/\1/p') \
     || echo "$env $name: arithmetic.txt not written (scripts/arithmetic_record.sh failed)" >&2
   if [ "$KEEP_CHECKPOINTS" != 1 ]; then rm -rf "$dir/checkpoints"; fi
-  if [ "$COMMIT" = 1 ]; then flock "$WORK/.git.lock" sh -c 'git add "$1" && git commit -q -m "results: $2 (experiment=$3)" -- "$1"' _ "$dest" "$env $name" "$PRESET"; fi
+  # COMMIT=1: the record with the committed reports that read it (tests/test_statistics.py holds them equal)
+  if [ "$COMMIT" = 1 ]; then flock "$WORK/.git.lock" sh -c '"$4" scripts/committed_reports.py --reading "$1" > /dev/null && git add "$1" docs/results docs/results.md \
+    && git commit -q -m "results: $2 (experiment=$3)" -- "$1" docs/results docs/results.md' _ "$dest" "$env $name" "$PRESET" "$PYTHON"; fi
 }
 export -f run_one
 

@@ -474,3 +474,13 @@ def test_committed_reports_refuse_an_unknown_folder_in_one_line(capsys):
     assert exit_.value.code == 2
     error = capsys.readouterr().err
     assert error.count("\n") == 1 and "nowhere" in error and "cem_rl_buffers" in error
+
+
+def test_committed_reports_name_the_reports_that_read_a_record(tmp_path, capsys):
+    """A new record's reports: the overview and its set's report, the paper runs' each their own."""
+    assert COMMITTED.reading("docs/results/runs/quarter/walker2d/td3_seed3") == ["overview", "quarter"]
+    assert COMMITTED.reading("docs/results/runs/paper/walker2d/td3_seed0") == ["overview", "paper/walker2d_td3"]
+    assert COMMITTED.reading(ROOT / "docs/results/runs/table1") == ["overview", "table1"]
+    assert COMMITTED.reading(tmp_path / "runs" / "walker2d" / "td3_seed0") == []
+    COMMITTED.main(["--reading", str(tmp_path)])  # nothing to write: says so, writes nothing
+    assert capsys.readouterr().err == f"{tmp_path}: no committed report reads it\n"
