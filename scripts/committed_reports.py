@@ -58,9 +58,8 @@ def reading(path: str | Path) -> list[str]:
     """The report folders whose records include ``path`` (a run's record folder, or a folder of them)."""
     path = (ROOT / path).resolve()
     return [folder for folder, arguments in REPORTS.items()
-            if any(path == (ROOT / argument).resolve() or (ROOT / argument).resolve() in path.parents
-                   or (ROOT / argument).resolve().is_relative_to(path)
-                   for argument in arguments if argument.startswith("docs/results/runs"))]
+            if any(path.is_relative_to(records) or records.is_relative_to(path)
+                   for records in ((ROOT / argument).resolve() for argument in arguments if argument.startswith("docs/results/runs")))]
 
 
 def sync_page(page: Path = RESULTS_PAGE, results: Path = RESULTS) -> list[str]:
