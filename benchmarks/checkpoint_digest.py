@@ -1,7 +1,7 @@
 """The cost of checking a paper-size checkpoint's digests (torchrl_esrl/run/checkpoint.py).
 
-Writes one checkpoint as a paper run has it at its largest: three full 1M-transition HalfCheetah
-buffers (``MultiBuffer``) and the paper's actor and twin critics, through ``RunCheckpoint``; then
+Writes one checkpoint as a paper run has it at its largest: three full 1M-transition buffers
+(``MultiBuffer``, HalfCheetah-v5's shapes unless ``--env`` names another) and the paper's actor and twin critics, through ``RunCheckpoint``; then
 times, in interleaved rounds, the checks a resume makes (files in the page cache, as right after
 a run wrote them):
 
@@ -11,7 +11,7 @@ a run wrote them):
   load       ``RunCheckpoint.restore`` of the checkpoint (TorchRL's load of every component)
   save       one ``RunCheckpoint.save`` (digests included)
 
-Usage: ``python -m benchmarks.checkpoint_digest [--capacity N] [--repeats R] [--dir DIR] [--out PATH]``.
+Usage: ``python -m benchmarks.checkpoint_digest [--env ENV_ID] [--capacity N] [--repeats R] [--dir DIR] [--out PATH]``.
 """
 from __future__ import annotations
 
@@ -50,9 +50,9 @@ def timed(fn) -> float:
     return time.perf_counter() - start
 
 
-def run(capacity: int = 1_000_000, repeats: int = 5, directory: str | None = None) -> dict:
+def run(capacity: int = 1_000_000, repeats: int = 5, directory: str | None = None, env_id: str = "HalfCheetah-v5") -> dict:
     with tempfile.TemporaryDirectory(dir=directory) as tmp:
-        checkpoint = build(Path(tmp), capacity)
+        checkpoint = build(Path(tmp), capacity, env_id)
         saves = [timed(checkpoint.save) for _ in range(2)]
         path = checkpoint.latest()
         files = [p for p in path.rglob("*") if p.is_file()]
@@ -85,17 +85,18 @@ def run(capacity: int = 1_000_000, repeats: int = 5, directory: str | None = Non
                 rounds[name].append(timed(fn))
         result = {name: {"median_s": sorted(r)[len(r) // 2], "rounds_s": r} for name, r in rounds.items()}
         result["save"] = {"rounds_s": saves}
-        return {"checkpoint_bytes": size, "files": len(files), "capacity": capacity, "results": result, "machine": machine()}
+        return {"env": env_id, "checkpoint_bytes": size, "files": len(files), "capacity": capacity, "results": result, "machine": machine()}
 
 
 if __name__ == "__main__":
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--env", default="HalfCheetah-v5", choices=sorted(SHAPES), help="whose observation and action sizes the buffers hold")
     parser.add_argument("--capacity", type=int, default=1_000_000)
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--dir", default=None, help="where the checkpoint is written (default: the system's temporary folder)")
     parser.add_argument("--out", default=None)
     args = parser.parse_args()
-    report = run(args.capacity, args.repeats, args.dir)
+    report = run(args.capacity, args.repeats, args.dir, args.env)
     save_report(report, args.out)
     mb = report["checkpoint_bytes"] / 1e6
     for name, entry in report["results"].items():

@@ -45,6 +45,7 @@ REPORTS = {
     "paper/walker2d_td3": _runs("runs/paper/walker2d/td3_seed0"),
     "paper/halfcheetah": _runs("runs/paper/halfcheetah/es_td3_seed0"),
     "paper/swimmer": _runs("runs/paper/swimmer/es_td3_seed0"),
+    "paper/ant": _runs("runs/paper/ant/es_td3_seed0"),
     ".": _bench_runs(),
 }
 
