@@ -1,7 +1,8 @@
 """The cost of checking a paper-size checkpoint's digests (torchrl_esrl/run/checkpoint.py).
 
 Writes one checkpoint as a paper run has it at its largest: three full 1M-transition buffers
-(``MultiBuffer``, HalfCheetah-v5's shapes unless ``--env`` names another) and the paper's actor and twin critics, through ``RunCheckpoint``; then
+(``MultiBuffer``, HalfCheetah-v5's shapes unless ``--env`` names another) and the paper's actor
+and twin critics, through ``RunCheckpoint``; then
 times, in interleaved rounds, the checks a resume makes (files in the page cache, as right after
 a run wrote them):
 
@@ -34,7 +35,10 @@ from torchrl_esrl.run.checkpoint import RunCheckpoint, unreadable
 from torchrl_esrl.run.progress import RunProgress
 
 
-def build(run_dir: Path, capacity: int, env_id: str = "HalfCheetah-v5") -> RunCheckpoint:
+DEFAULT_ENV = "HalfCheetah-v5"
+
+
+def build(run_dir: Path, capacity: int, env_id: str = DEFAULT_ENV) -> RunCheckpoint:
     obs_dim, act_dim = SHAPES[env_id]
     buffer = MultiBuffer(ratio=(0.5, 0.2, 0.3), capacity=capacity, batch_size=256)
     for name in buffer.names:
@@ -50,7 +54,7 @@ def timed(fn) -> float:
     return time.perf_counter() - start
 
 
-def run(capacity: int = 1_000_000, repeats: int = 5, directory: str | None = None, env_id: str = "HalfCheetah-v5") -> dict:
+def run(capacity: int = 1_000_000, repeats: int = 5, directory: str | None = None, env_id: str = DEFAULT_ENV) -> dict:
     with tempfile.TemporaryDirectory(dir=directory) as tmp:
         checkpoint = build(Path(tmp), capacity, env_id)
         saves = [timed(checkpoint.save) for _ in range(2)]
@@ -90,7 +94,7 @@ def run(capacity: int = 1_000_000, repeats: int = 5, directory: str | None = Non
 
 if __name__ == "__main__":
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--env", default="HalfCheetah-v5", choices=sorted(SHAPES), help="whose observation and action sizes the buffers hold")
+    parser.add_argument("--env", default=DEFAULT_ENV, choices=sorted(SHAPES), help="whose observation and action sizes the buffers hold")
     parser.add_argument("--capacity", type=int, default=1_000_000)
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--dir", default=None, help="where the checkpoint is written (default: the system's temporary folder)")
