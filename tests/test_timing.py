@@ -70,6 +70,10 @@ def test_timing_and_runs_tables_give_the_net_seconds_with_the_held_beside(tmp_pa
     text = write_timing([held, short], tmp_path, ALGORITHMS).read_text()
     assert "| Walker2d-v5 | TD3 | 2 | 2466 | 2215 | 2716 | 4931 | 1130 | 1 | 1 |" in text  # 3,345 - 1,130 and at least 2,716
     assert "an attempt is missing from the record" in text and "every hold within it: 2,205 s net of holds" in text
+    assert "| Walker2d-v5 | TD3 | 0 | 1: 0 | 2,215 | 1,130 | - | abc |" in text  # each run's own row, no load recorded
+    loaded = record(tmp_path / "r2", 500.0, seed=2, timing_txt="w td3_seed2: exit killed after 200 s on commit abc load_mean 2.43 load_max 3.19\n"
+                    "w td3_seed2: exit 0 after 300 s on commit def started 2026-01-01T00:00:00Z load_mean 2.11 load_max 3.15\n")
+    assert "| Walker2d-v5 | TD3 | 2 | 2: killed, 0 | 500 | 0 | 2.11-2.43 / 3.19 (2 of 2) | abc, def |" in write_timing([loaded], tmp_path, ALGORITHMS).read_text()
     write_runs_table([held, short], tmp_path, ALGORITHMS)
     rows = [line for line in (tmp_path / "runs.md").read_text().splitlines() if line.startswith("| Walker2d-v5")]
     assert rows[0].endswith("| 36.8 | 18.8 |") and rows[1].endswith("| 45.3 | - |")  # (3,335 - 1,130) / 60; 2,716 / 60

@@ -215,11 +215,36 @@ def net_minutes_text(time: RunTime) -> str:
     return f"{high:.1f}" if abs(high - low) < 0.05 else f"{low:.1f}-{high:.1f}"
 
 
+def load_text(attempts: list[Attempt]) -> str:
+    """The 1-minute load average over the attempts that record it: their means (a range) and the
+    largest value, with how many attempts record one: ``2.11-2.43 / 3.19 (2 of 2)``."""
+    loads = [a.load for a in attempts if a.load]
+    if not loads:
+        return "-"
+    low, high = min(mean for mean, _ in loads), max(mean for mean, _ in loads)
+    means = f"{low:.2f}" if low == high else f"{low:.2f}-{high:.2f}"
+    return f"{means} / {max(largest for _, largest in loads):.2f} ({len(loads)} of {len(attempts)})"
+
+
+def per_run_table(per_run: list[tuple[str, str, int, RunTime]]) -> list[str]:
+    """One row per run: its attempts and how they ended, its command seconds net of holds, the held
+    seconds, the load it ran at and the commits it ran on."""
+    lines = ["| env | row | seed | attempts: endings | seconds net of holds | held (s) | load average over its attempts: means / largest (attempts recording it) | commits |",
+             "|---|---|---:|---|---:|---:|---|---|"]
+    for env, name, seed, time in per_run:
+        endings = ", ".join(a.ending.removeprefix("exit ") + (" (started over)" if a.started_over else "") for a in time.attempts)
+        commits = ", ".join(dict.fromkeys(a.commit[:7] for a in time.attempts if a.commit)) or "-"
+        lines.append(f"| {env} | {name} | {seed} | {len(time.attempts)}: {endings} | {time.seconds_net:,.0f} | {time.held:,.0f} | "
+                     f"{load_text(time.attempts)} | {commits} |")
+    return lines
+
+
 def write_timing(runs: list[dict], out_dir: Path, algorithms: Algorithms) -> Path | None:
     """``timing.md``: per row of ``timing.txt`` runs, their command seconds net of holds (median,
-    smallest, largest, total) with the held seconds beside; per ``pieces.txt`` run, its pieces;
-    a line for every run held or with an attempt missing from its record."""
-    per_row: dict[tuple[str, str], list[RunTime]] = defaultdict(list)
+    smallest, largest, total) with the held seconds beside, then each run's attempts, seconds, load
+    and commits; per ``pieces.txt`` run, its pieces; a line for every run held or with an attempt
+    missing from its record."""
+    per_run: list[tuple[str, str, int, RunTime]] = []
     pieces, notes = [], []
     for run in runs:
         s = run["summary"]
@@ -229,27 +254,31 @@ def write_timing(runs: list[dict], out_dir: Path, algorithms: Algorithms) -> Pat
         if (run["dir"] / "pieces.txt").exists():
             pieces.append((key, s["seed"], time))
             continue
-        per_row[key].append(time)
+        per_run.append((*key, s["seed"], time))
         what = f"{key[0]}, {key[1]}, seed {s['seed']}"
         if time.missing:
             notes.append(f"- {what}: `timing.txt` holds {time.seconds:,} s in {len(time.attempts)} attempt{'s' if len(time.attempts) != 1 else ''}, less than its "
                          f"training clock of {time.clock:,.0f} s: an attempt is missing from the record, and the run took at least its clock.")
         if time.holds or time.open_holds:
             notes.append(f"- {what}: held {held_text(time)} (`pauses.txt`); {time.seconds:,} s of commands, {time.seconds_net:,.0f} s net of holds; {clock_text(time)}.")
-    if not per_row and not pieces:
+    if not per_run and not pieces:
         return None
+    per_row: dict[tuple[str, str], list[RunTime]] = defaultdict(list)
+    for env, name, _, time in per_run:
+        per_row[env, name].append(time)
     lines = []
-    if per_row:
+    if per_run:
         lines += ["| env | row | runs | median (s) | smallest (s) | largest (s) | total (s) | held (s) | runs held | runs with an attempt missing |",
                   "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|"]
         for (env, name), times in sorted(per_row.items()):
             net = [t.seconds_net for t in times]
             lines.append(f"| {env} | {name} | {len(times)} | {np.median(net):.0f} | {min(net):.0f} | {max(net):.0f} | {sum(net):.0f} | "
                          f"{sum(t.held for t in times):.0f} | {sum(bool(t.holds) for t in times)} | {sum(t.missing for t in times)} |")
-        every = [t for times in per_row.values() for t in times]
+        every = [time for *_, time in per_run]
         lines += ["", f"{len(every)} runs, {sum(t.seconds_net for t in every):,.0f} s of commands in all net of holds, {sum(t.held for t in every):,.0f} s held "
                   "(`timing.txt`: each attempt's command seconds, summed per run; `pauses.txt`: the holds, subtracted; a run whose attempts add up to less "
-                  "than its training clock counts its clock, a lower bound).", *([""] + notes if notes else []), ""]
+                  "than its training clock counts its clock, a lower bound). Each run:", "", *per_run_table(sorted(per_run, key=lambda item: item[:3])),
+                  *([""] + notes if notes else []), ""]
     for (env, name), seed, time in pieces:
         loads = any(a.load for a in time.attempts)
         lines += [f"{env}, {name}, seed {seed} (`pieces.txt`):", "",
