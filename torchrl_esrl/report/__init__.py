@@ -38,7 +38,7 @@ def make_report(paths, out_dir, algorithms: Algorithms) -> dict:
     pairwise_csv, pairwise_md = write_pairwise_table(pairwise, out_dir, algorithms)
     written = {}
     if overwrites:
-        written["overwrites_csv"], written["overwrites_md"] = write_overwrite_table(overwrites, out_dir, algorithms)
+        written["overwrites_csv"], written["overwrites_md"] = write_overwrite_table(overwrites, runs, out_dir, algorithms)
     summary = summary_table(runs, rows, pairwise, overwrites, algorithms)
     written["summary_md"] = write_summary_table(summary, out_dir, algorithms)
     for key, path in (("iterations_md", write_iterations(runs, out_dir, algorithms)), ("timing_md", write_timing(runs, out_dir, algorithms))):

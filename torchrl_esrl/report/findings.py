@@ -85,8 +85,32 @@ def overwrite_sentence(row: dict, algorithms: Algorithms) -> str:
                    f" only the {k} overwritten run{'s' if k != 1 else ''} can tell anything about them.")
 
 
-def write_overwrite_table(rows: list[dict], out_dir: Path, algorithms: Algorithms) -> tuple[Path, Path]:
-    """``overwrites.csv`` and ``overwrites.md``: :func:`overwrite_table` and its sentences."""
+def overwrite_runs_table(runs: list[dict], algorithms: Algorithms) -> list[str]:
+    """Per run whose ``metrics.csv`` gives the overwrite rule's averages (Algorithm 1's last step):
+    each iteration (from 1) in which the TD3 actor overwrote the ES mean, with the two averages that
+    decided it; over the iterations after the last overwrite (the whole run where there was none),
+    the largest average of each; the final return of the ES mean and of its own TD3 actor."""
+    chosen = [run for run in runs if records_overwrites(run) and run["metrics"] and "td3_average" in run["metrics"][0]]
+    if not chosen:
+        return []
+    lines = ["| env | row | seed | overwritten in iteration: TD3 actor's average / ES mean's | after the last overwrite (the whole run where none), "
+             "the largest average: ES mean's / TD3 actor's | final return: ES mean / TD3 actor |", "|---|---|---:|---|---|---|"]
+    for run in sorted(chosen, key=lambda r: (r["summary"]["env"], algorithms.row_order((r["summary"]["algorithm"], ratio_text(r["summary"]))), r["summary"]["seed"])):
+        s, metrics = run["summary"], run["metrics"]
+        overwritten = [i for i, row in enumerate(metrics) if row["overwritten"] is True]
+        at = "; ".join(f"{i + 1}: {metrics[i]['td3_average']:,.1f} / {metrics[i]['es_average']:,.1f}" for i in overwritten) or "never"
+        after = metrics[overwritten[-1] + 1:] if overwritten else metrics
+        largest = (f"{max(row['es_average'] for row in after):,.1f} / {max(row['td3_average'] for row in after):,.1f}" if after
+                   else "- (overwritten in the last iteration)")
+        actor = s.get("final_td3_actor_return")
+        final = f"{s['final_return']:,.1f} / " + (f"{actor:,.1f}" if actor is not None else "-")
+        lines.append(f"| {s['env']} | {algorithms.label(s['algorithm'], ratio_text(s))} | {s['seed']} | {at} | {largest} | {final} |")
+    return lines
+
+
+def write_overwrite_table(rows: list[dict], runs: list[dict], out_dir: Path, algorithms: Algorithms) -> tuple[Path, Path]:
+    """``overwrites.csv`` and ``overwrites.md``: :func:`overwrite_table` and its sentences; and
+    ``overwrite_runs.md``, each run's overwrites (:func:`overwrite_runs_table`), where runs give them."""
     csv_path, md_path = out_dir / "overwrites.csv", out_dir / "overwrites.md"
     write_csv(csv_path, OVERWRITE_COLUMNS, [{key: r[key] for key in OVERWRITE_COLUMNS} for r in rows])
     es_alone = algorithms.label(algorithms.es_alone or "")
@@ -107,6 +131,12 @@ def write_overwrite_table(rows: list[dict], out_dir: Path, algorithms: Algorithm
         "a count over runs, not a test.",
     ]
     md_path.write_text("\n".join(lines) + "\n")
+    per_run = overwrite_runs_table(runs, algorithms)
+    if per_run:
+        intro = ("After each iteration the rule overwrites the ES mean with the TD3 actor when the TD3 actor's evaluation return, "
+                 "averaged over the last `overwrite.window` iterations, exceeds the ES mean's (`td3_average`, `es_average` in "
+                 "`metrics.csv`; `torchrl_esrl/algorithm/overwrite.py`). Each run:")
+        (out_dir / "overwrite_runs.md").write_text("\n".join([intro, "", *per_run]) + "\n")
     return csv_path, md_path
 
 
