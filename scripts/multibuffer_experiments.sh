@@ -32,7 +32,8 @@
 # config.yaml are copied to $RESULTS/<env>/<row>_seed<k>/ (commit each with the reports that read it,
 # written by scripts/committed_reports.py --reading <record>; COMMIT=1 does both as each one lands),
 # with timing.txt: one line per attempt (exit status, seconds of the command, the commit it ran on,
-# its start (UTC), the mean and largest 1-minute load average over it, sampled every 2 s; a started-over
+# its start (UTC), the mean and largest 1-minute load average over it, sampled every 2 s, the processor
+# it ran on (scripts/processor.sh: machines change between sessions); a started-over
 # run's earlier attempts first, marked "(started over)"), so a resumed run's wall-clock is the sum of its
 # lines; an attempt killed with its script or session has its line too, marked "exit killed",
 # from <run_dir>.alive, which holds the running attempt's line, rewritten every 2 s, and which the next attempt
@@ -129,6 +130,7 @@ run_one() {
     fi
     mkdir -p "$(dirname "$dir")"
     start=$(date +%s) started=$(date -u +%FT%TZ) commit=$(git rev-parse HEAD)
+    cpu=$(scripts/processor.sh)
     # shellcheck disable=SC2086  # EXTRA: several overrides, split on purpose
     # TORCHRL_ESRL_JOBS: JOBS runs share the machine, each takes its share of the cores (torchrl_esrl/threads.py)
     TORCHRL_ESRL_JOBS=$JOBS "$PYTHON" "recipes/$recipe" env="$env" experiment="$PRESET" seed="$seed" "$@" $EXTRA \
@@ -136,8 +138,8 @@ run_one() {
     pid=$! sum=0 count=0 peak=0
     line() {  # this attempt's timing line: exit status $1
       local mean=$((sum / (count > 0 ? count : 1)))
-      printf '%s: exit %s after %s s on commit %s started %s load_mean %d.%02d load_max %d.%02d\n' "$env $name" "$1" "$(( $(date +%s) - start ))" \
-        "$commit" "$started" $((mean / 100)) $((mean % 100)) $((peak / 100)) $((peak % 100))
+      printf '%s: exit %s after %s s on commit %s started %s load_mean %d.%02d load_max %d.%02d cpu %s\n' "$env $name" "$1" "$(( $(date +%s) - start ))" \
+        "$commit" "$started" $((mean / 100)) $((mean % 100)) $((peak / 100)) $((peak % 100)) "$cpu"
     }
     while kill -0 "$pid" 2> /dev/null; do  # the machine's 1-minute load average, in hundredths, every 2 s
       load=$(cut -d' ' -f1 /proc/loadavg | tr -d .) load=$((10#$load))

@@ -7,7 +7,8 @@
 # and any other with RUN (a recipe and its overrides), e.g. RUN="recipes/td3.py env=walker2d seed=0".
 # Each call runs one piece: the run continues from its own checkpoints (hydra.run.dir=run_dir; a
 # checkpoint every 50k TD3 frames and, in ES-TD3's ES phase, every 10 generations, as well as at every
-# iteration boundary, so a killed piece loses at most 50k TD3 frames or 10 generations). While a piece runs, <run_dir>.piece<N>.alive holds its commit, start, seconds so
+# iteration boundary, so a killed piece loses at most 50k TD3 frames or 10 generations). While a piece runs, <run_dir>.piece<N>.alive holds its commit, start, the
+# processor it runs on (scripts/processor.sh: machines change between sessions), seconds so
 # far, peak resident memory (VmHWM) and the machine's 1-minute load average so far (mean and largest,
 # sampled every 2 s), rewritten every 2 s, so a piece killed with its session still has a record.
 # <run_dir>.pieces gets one line per piece: that record and how it ended (exit status, or "killed" for a
@@ -43,7 +44,8 @@ done
 if [ ! -f "$DIR/summary.json" ]; then
   piece=$(grep -c '^piece ' "$DIR.pieces" 2>/dev/null || true)
   piece=${piece:-0}
-  record="piece $piece commit $(git rev-parse HEAD) start $(date -u +%FT%TZ)"
+  cpu=$(scripts/processor.sh)
+  record="piece $piece commit $(git rev-parse HEAD) start $(date -u +%FT%TZ) cpu $cpu"
   t0=$(date +%s)
   # shellcheck disable=SC2086  # RUN is a recipe and its overrides, split on spaces
   "$PYTHON" $RUN hydra.run.dir="$DIR" checkpoint.every_frames=50000 checkpoint.every_generations=10 "$@" \

@@ -70,10 +70,10 @@ def test_timing_and_runs_tables_give_the_net_seconds_with_the_held_beside(tmp_pa
     text = write_timing([held, short], tmp_path, ALGORITHMS).read_text()
     assert "| Walker2d-v5 | TD3 | 2 | 2466 | 2215 | 2716 | 4931 | 1130 | 1 | 1 |" in text  # 3,345 - 1,130 and at least 2,716
     assert "an attempt is missing from the record" in text and "every hold within it: 2,205 s net of holds" in text
-    assert "| Walker2d-v5 | TD3 | 0 | 1: 0 | 2,215 | 1,130 | - | abc |" in text  # each run's own row, no load recorded
+    assert "| Walker2d-v5 | TD3 | 0 | 1: 0 | 2,215 | 1,130 | - | - | abc |" in text  # each run's own row, no load or processor recorded
     loaded = record(tmp_path / "r2", 500.0, seed=2, timing_txt="w td3_seed2: exit killed after 200 s on commit abc load_mean 2.43 load_max 3.19\n"
                     "w td3_seed2: exit 0 after 300 s on commit def started 2026-01-01T00:00:00Z load_mean 2.11 load_max 3.15\n")
-    assert "| Walker2d-v5 | TD3 | 2 | 2: killed, 0 | 500 | 0 | 2.11-2.43 / 3.19 (2 of 2) | abc, def |" in write_timing([loaded], tmp_path, ALGORITHMS).read_text()
+    assert "| Walker2d-v5 | TD3 | 2 | 2: killed, 0 | 500 | 0 | 2.11-2.43 / 3.19 (2 of 2) | - | abc, def |" in write_timing([loaded], tmp_path, ALGORITHMS).read_text()
     write_runs_table([held, short], tmp_path, ALGORITHMS)
     rows = [line for line in (tmp_path / "runs.md").read_text().splitlines() if line.startswith("| Walker2d-v5")]
     assert rows[0].endswith("| 36.8 | 18.8 |") and rows[1].endswith("| 45.3 | - |")  # (3,335 - 1,130) / 60; 2,716 / 60
@@ -95,3 +95,43 @@ def test_the_runs_table_gives_the_learner_copies_of_a_run_that_makes_them(tmp_pa
     assert "| - | - | - |" in next(line for line in table if "| CEM |" in line)  # TD3 actor, overwrites, copies
     write_runs_table(cem, tmp_path, ALGORITHMS)
     assert "copied" not in (tmp_path / "runs.md").read_text()
+
+
+def test_each_attempt_names_the_processor_it_ran_on_where_its_line_records_one(tmp_path):
+    """Lines as scripts/multibuffer_experiments.sh and scripts/paper_run.sh write them since they
+    record scripts/processor.sh's text; beside them an older line (no cpu, a note after it) and a
+    started-over line."""
+    timing = ("w td3_seed3: exit killed after 200 s on commit abc started 2026-01-01T00:00:00Z load_mean 2.43 load_max 3.19 (reconstructed from the log)\n"
+              "w td3_seed3: exit killed after 100 s on commit abc started 2026-01-01T01:00:00Z load_mean 2.00 load_max 2.10 "
+              "cpu family 6 model 143 Intel(R) Xeon(R) Platinum 8481C (started over)\n"
+              "w td3_seed3: exit 0 after 300 s on commit def started 2026-01-01T02:00:00Z load_mean 2.11 load_max 3.15 cpu family 25 model 17 AMD EPYC\n")
+    run = record(tmp_path / "t", 550.0, seed=3, timing_txt=timing)
+    time = run_time(run)
+    assert [a.cpu for a in time.attempts] == ["", "family 6 model 143 Intel(R) Xeon(R) Platinum 8481C", "family 25 model 17 AMD EPYC"]
+    assert [a.started_over for a in time.attempts] == [False, True, False] and time.attempts[2].load == (2.11, 3.15)
+    assert ("| 3: killed, killed (started over), 0 | 600 | 0 | 2.00-2.43 / 3.19 (3 of 3) | family 6 model 143 Intel(R) Xeon(R) Platinum 8481C; "
+            "family 25 model 17 AMD EPYC; not recorded for 1 of 3 | abc, def |") in write_timing([run], tmp_path, ALGORITHMS).read_text()
+    pieces = ("piece 0 commit aaa start 2026-01-01T00:00:00Z seconds 1000 peak_rss_mib 900 load_mean 1.95 load_max 2.40 killed\n"
+              "piece 1 commit bbb start 2026-01-01T01:00:00Z cpu family 25 model 17 AMD EPYC seconds 900 peak_rss_mib 950 load_mean 1.90 load_max 2.20 exit 0\n")
+    paper = record(tmp_path / "p", 1800.0, pieces_txt=pieces)
+    assert [(a.cpu, a.seconds, a.peak_rss_mib, a.ending) for a in run_time(paper).attempts] == [("", 1000, 900, "killed"), ("family 25 model 17 AMD EPYC", 900, 950, "exit 0")]
+    text = write_timing([paper], tmp_path, ALGORITHMS).read_text()
+    assert "| 0 | aaa | 2026-01-01T00:00:00Z | 1000 | 0 | 900 | 1.95 / 2.40 | - | killed |" in text
+    assert "| 1 | bbb | 2026-01-01T01:00:00Z | 900 | 0 | 950 | 1.90 / 2.20 | family 25 model 17 AMD EPYC | exit 0 |" in text
+
+
+def test_the_processor_script_names_this_machines_processor():
+    """scripts/processor.sh, which the run scripts call, against /proc/cpuinfo read here."""
+    import re
+    import subprocess
+    cpuinfo = Path("/proc/cpuinfo")
+    if not cpuinfo.exists():
+        assert subprocess.run([ROOT / "scripts" / "processor.sh"], capture_output=True, text=True, check=True).stdout.strip() == "unknown"
+        return
+    first = cpuinfo.read_text().split("\n\n")[0]
+    field = {key: re.search(rf"^{key}\s*: (.*)$", first, re.M) for key in ("cpu family", "model", "model name")}
+    text = subprocess.run([ROOT / "scripts" / "processor.sh"], capture_output=True, text=True, check=True).stdout.strip()
+    if not all(field.values()):  # a processor whose /proc/cpuinfo names no family and model (e.g. some ARM machines)
+        assert text == "unknown"
+        return
+    assert text == f"family {field['cpu family'][1].strip()} model {field['model'][1].strip()} {field['model name'][1].strip()}"

@@ -4,7 +4,8 @@ of the holds.
 - ``pieces.txt`` (``scripts/paper_run.sh``) and ``timing.txt`` (``scripts/multibuffer_experiments.sh``):
   one line per attempt of the run's command, with its seconds, commit and ending; a piece also its
   start (UTC) and peak memory, a recent timing line its start; both the 1-minute load average's
-  mean and largest value over the attempt where recorded.
+  mean and largest value over the attempt, and the processor it ran on (``scripts/processor.sh``),
+  where recorded.
 - ``pauses.txt`` (``scripts/pause_runs.sh``): when the run was held (SIGSTOP) and let go, UTC.
   Every hold lies inside an attempt (only a running process is held), so the attempts' seconds net
   of the holds are their sum less the held seconds.
@@ -32,8 +33,8 @@ import numpy as np
 
 from torchrl_esrl.report.records import Algorithms, ratio_text
 
-PIECE = re.compile(r"piece (\d+) commit (\S+) start (\S+) seconds (\d+) peak_rss_mib (\d+)(?: load_mean (\S+) load_max (\S+))? (.+)")
-TIMING = re.compile(r"exit (\S+) after (\d+) s(?: on commit (\S+))?(?: started (\S+))?(?: load_mean (\S+) load_max (\S+))?( \(started over\))?")
+PIECE = re.compile(r"piece (\d+) commit (\S+) start (\S+)(?: cpu (.+?))? seconds (\d+) peak_rss_mib (\d+)(?: load_mean (\S+) load_max (\S+))? (.+)")
+TIMING = re.compile(r"exit (\S+) after (\d+) s(?: on commit (\S+))?(?: started (\S+))?(?: load_mean (\S+) load_max (\S+))?(?: cpu (.+?))?(?: \((?!started over)[^)]*\))?( \(started over\))?$")
 HOLD = re.compile(r"(pause|resume) (\S+)")
 LOG = re.compile(r"\[(\d{4}-\d\d-\d\d \d\d:\d\d:\d\d)[,.]\d+\] (started|resumed|iteration \d+/\d+ |finished)")
 END_SLACK_S = 3  # an attempt's seconds are whole and sampled every 2 s: a hold may end this far past them
@@ -55,6 +56,7 @@ class Attempt:
     started_over: bool = False  # timing.txt: an attempt whose work was thrown away, the run started over
     peak_rss_mib: int | None = None
     load: tuple[float, float] | None = None  # the 1-minute load average over the attempt: mean, largest
+    cpu: str = ""  # the processor it ran on (scripts/processor.sh: "family 25 model 17 AMD EPYC"); "" where not recorded
 
     @property
     def end(self) -> datetime | None:
@@ -81,11 +83,12 @@ def read_attempts(run_dir: Path) -> list[Attempt]:
     """The run's attempts, from ``pieces.txt`` or else ``timing.txt``; none when it has neither."""
     if (run_dir / "pieces.txt").exists():
         found = [PIECE.fullmatch(line.strip()) for line in (run_dir / "pieces.txt").read_text().splitlines()]
-        return [Attempt(int(m[4]), m[8], m[2], utc(m[3]), peak_rss_mib=int(m[5]), load=(float(m[6]), float(m[7])) if m[6] else None) for m in found if m]
-    if (run_dir / "timing.txt").exists():
-        found = [TIMING.search(line) for line in (run_dir / "timing.txt").read_text().splitlines()]
-        return [Attempt(int(m[2]), f"exit {m[1]}", m[3] or "", utc(m[4]) if m[4] else None, bool(m[7]), load=(float(m[5]), float(m[6])) if m[5] else None)
+        return [Attempt(int(m[5]), m[9], m[2], utc(m[3]), peak_rss_mib=int(m[6]), load=(float(m[7]), float(m[8])) if m[7] else None, cpu=m[4] or "")
                 for m in found if m]
+    if (run_dir / "timing.txt").exists():
+        found = [TIMING.search(line.rstrip()) for line in (run_dir / "timing.txt").read_text().splitlines()]
+        return [Attempt(int(m[2]), f"exit {m[1]}", m[3] or "", utc(m[4]) if m[4] else None, bool(m[8]), load=(float(m[5]), float(m[6])) if m[5] else None,
+                        cpu=m[7] or "") for m in found if m]
     return []
 
 
@@ -226,16 +229,26 @@ def load_text(attempts: list[Attempt]) -> str:
     return f"{means} / {max(largest for _, largest in loads):.2f} ({len(loads)} of {len(attempts)})"
 
 
+def processors_text(attempts: list[Attempt]) -> str:
+    """The processors the attempts ran on, each once, and how many attempts do not record one:
+    ``family 25 model 17 AMD EPYC; not recorded for 1 of 2``."""
+    named = list(dict.fromkeys(a.cpu for a in attempts if a.cpu))
+    unnamed = sum(not a.cpu for a in attempts)
+    if not named:
+        return "-"
+    return "; ".join(named) + (f"; not recorded for {unnamed} of {len(attempts)}" if unnamed else "")
+
+
 def per_run_table(per_run: list[tuple[str, str, int, RunTime]]) -> list[str]:
     """One row per run: its attempts and how they ended, its command seconds net of holds, the held
-    seconds, the load it ran at and the commits it ran on."""
-    lines = ["| env | row | seed | attempts: endings | seconds net of holds | held (s) | load average over its attempts: means / largest (attempts recording it) | commits |",
-             "|---|---|---:|---|---:|---:|---|---|"]
+    seconds, the load it ran at, the processors and the commits it ran on."""
+    lines = ["| env | row | seed | attempts: endings | seconds net of holds | held (s) | load average over its attempts: means / largest (attempts recording it) | processors | commits |",
+             "|---|---|---:|---|---:|---:|---|---|---|"]
     for env, name, seed, time in per_run:
         endings = ", ".join(a.ending.removeprefix("exit ") + (" (started over)" if a.started_over else "") for a in time.attempts)
         commits = ", ".join(dict.fromkeys(a.commit[:7] for a in time.attempts if a.commit)) or "-"
         lines.append(f"| {env} | {name} | {seed} | {len(time.attempts)}: {endings} | {time.seconds_net:,.0f} | {time.held:,.0f} | "
-                     f"{load_text(time.attempts)} | {commits} |")
+                     f"{load_text(time.attempts)} | {processors_text(time.attempts)} | {commits} |")
     return lines
 
 
@@ -280,13 +293,15 @@ def write_timing(runs: list[dict], out_dir: Path, algorithms: Algorithms) -> Pat
                   "than its training clock counts its clock, a lower bound). Each run:", "", *per_run_table(sorted(per_run, key=lambda item: item[:3])),
                   *([""] + notes if notes else []), ""]
     for (env, name), seed, time in pieces:
-        loads = any(a.load for a in time.attempts)
+        loads, cpus = any(a.load for a in time.attempts), any(a.cpu for a in time.attempts)
         lines += [f"{env}, {name}, seed {seed} (`pieces.txt`):", "",
-                  "| piece | commit | start | seconds | held (s) | peak resident memory (MiB) |" + (" load average, mean / largest |" if loads else "") + " ending |",
-                  "|---:|---|---|---:|---:|---:|" + ("---|" if loads else "") + "---|"]
+                  "| piece | commit | start | seconds | held (s) | peak resident memory (MiB) |" + (" load average, mean / largest |" if loads else "")
+                  + (" processor |" if cpus else "") + " ending |",
+                  "|---:|---|---|---:|---:|---:|" + ("---|" if loads else "") + ("---|" if cpus else "") + "---|"]
         for i, (a, held) in enumerate(zip(time.attempts, time.per_attempt)):
             load = f" {a.load[0]:.2f} / {a.load[1]:.2f} |" if a.load else (" - |" if loads else "")
-            lines.append(f"| {i} | {a.commit[:7]} | {a.start:%Y-%m-%dT%H:%M:%SZ} | {a.seconds} | {held:.0f} | {a.peak_rss_mib} |{load} {a.ending} |")
+            cpu = f" {a.cpu or '-'} |" if cpus else ""
+            lines.append(f"| {i} | {a.commit[:7]} | {a.start:%Y-%m-%dT%H:%M:%SZ} | {a.seconds} | {held:.0f} | {a.peak_rss_mib} |{load}{cpu} {a.ending} |")
         count = len(time.attempts)
         text = f"{time.seconds:,} s in {count} piece{'s' if count != 1 else ''}"
         if time.holds or time.open_holds:
