@@ -8,9 +8,16 @@ from pathlib import Path
 
 import pytest
 
+from torchrl_esrl.report.timing import read_attempts
+
 ROOT = Path(__file__).resolve().parents[1]
 
 pytestmark = pytest.mark.e2e
+
+
+def _processor() -> str:
+    """scripts/processor.sh's text for this machine, which the run scripts record beside each attempt."""
+    return subprocess.run([str(ROOT / "scripts" / "processor.sh")], capture_output=True, text=True, check=True).stdout.strip()
 
 
 def _script(name: str, *args: str, **environment: str) -> subprocess.CompletedProcess:
@@ -44,6 +51,7 @@ def test_experiment_set_starts_over_a_run_without_a_checkpoint_records_it_delete
     words = attempt.split()
     assert attempt.startswith("swimmer es_seed0: exit 0 after ") and words[words.index("commit") + 1] == commit
     assert words[words.index("started") + 1].endswith("Z") and float(words[words.index("load_max") + 1]) >= float(words[words.index("load_mean") + 1]) > 0
+    assert attempt.endswith(f" cpu {_processor()}") and [a.cpu for a in read_attempts(record)] == ["", "", _processor()]
     assert "finished:" in (record / "run.log").read_text()  # the run's own log, each line timed
     assert not (record / "arithmetic.txt").exists()  # its kept attempt ran on one commit
     run_dir = work / "swimmer" / "es_seed0"
@@ -67,6 +75,7 @@ def test_paper_run_records_each_piece_a_killed_one_too_and_never_reruns_a_finish
     assert words[:4] == ["piece", "1", "commit", commit] and words[-2:] == ["exit", "0"]
     assert int(words[words.index("seconds") + 1]) > 0 and int(words[words.index("peak_rss_mib") + 1]) > 100  # torch alone is more
     assert float(words[words.index("load_max") + 1]) >= float(words[words.index("load_mean") + 1]) > 0
+    assert f" cpu {_processor()} seconds " in pieces[1] and [a.cpu for a in read_attempts(results)] == ["", _processor()]
     assert sorted(p.name for p in results.iterdir()) == ["checkpoints.txt", "config.yaml", "metrics.csv", "pieces.txt", "run.log", "summary.json"]
     sizes = [line.split("\t") for line in (results / "checkpoints.txt").read_text().splitlines()]
     assert sizes and all(int(size) > 1000 and name.startswith("checkpoints/checkpoint-") for size, name in sizes)
