@@ -2,6 +2,7 @@
 what they skip on a second call, what they delete."""
 import json
 import os
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -59,6 +60,17 @@ def test_experiment_set_starts_over_a_run_without_a_checkpoint_records_it_delete
     second = call()
     assert second.returncode == 0 and "swimmer es_seed0: recorded, skipped" in second.stdout
     assert len((record / "timing.txt").read_text().splitlines()) == 3
+
+
+def test_the_processor_script_names_this_machines_processor():
+    """scripts/processor.sh against the first processor of /proc/cpuinfo, read here."""
+    cpuinfo = Path("/proc/cpuinfo")
+    first = cpuinfo.read_text().split("\n\n")[0] if cpuinfo.exists() else ""
+    field = {key: re.search(rf"^{key}\s*: (.*)$", first, re.M) for key in ("cpu family", "model", "model name")}
+    if not all(field.values()):  # no /proc/cpuinfo, or one that names no family and model (some ARM machines)
+        assert _processor() == "unknown"
+    else:
+        assert _processor() == f"family {field['cpu family'][1].strip()} model {field['model'][1].strip()} {field['model name'][1].strip()}"
 
 
 def test_paper_run_records_each_piece_a_killed_one_too_and_never_reruns_a_finished_run(tmp_path):
