@@ -118,4 +118,3 @@ def test_each_attempt_names_the_processor_it_ran_on_where_its_line_records_one(t
     text = write_timing([paper], tmp_path, ALGORITHMS).read_text()
     assert "| 0 | aaa | 2026-01-01T00:00:00Z | 1000 | 0 | 900 | 1.95 / 2.40 | - | killed |" in text
     assert "| 1 | bbb | 2026-01-01T01:00:00Z | 900 | 0 | 950 | 1.90 / 2.20 | family 25 model 17 AMD EPYC | exit 0 |" in text
-
