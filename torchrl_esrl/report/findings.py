@@ -186,11 +186,12 @@ def write_summary_table(rows: list[dict], out_dir: Path, algorithms: Algorithms)
     lines = ["| task | " + " | ".join(algorithms.label(*key) for key in keys) + f" | differences (Holm p < {SIGNIFICANCE}) |", "|---|" + "---|" * (len(keys) + 1)]
     for r in rows:
         lines.append(f"| {r['env']} | " + " | ".join(r["cells"].get(key, "not run") for key in keys) + f" | {r['differences']} |")
-    runs = sorted({n for r in rows for n in r["runs"].values()})
+    runs = [str(n) for n in sorted({n for r in rows for n in r["runs"].values()})]
+    runs_text = ", ".join(runs[:-1]) + " or " + runs[-1] if len(runs) > 1 else runs[0]
     families = ", ".join(f"{r['env']}: {r['pairs']}" for r in rows)
     lines += [
         "",
-        f"Final return of the returned policy ({algorithms.returned_text(key[0] for key in keys)}), IQM over {' or '.join(map(str, runs))} runs with its 95% bootstrap CI"
+        f"Final return of the returned policy ({algorithms.returned_text(key[0] for key in keys)}), IQM over {runs_text} runs with its 95% bootstrap CI"
         " (results.md; a row of one run: its final return)" + ("; overwritten in k/n: runs whose ES mean the TD3 actor replaced at least once (overwrites.md)" if any(r["overwrites_counted"] for r in rows) else "") + ". Differences:",
         f"two-sided permutation test of the means with Holm's correction across the task's tested pairs ({families}; pairwise.md).",
         "No difference called means none shown, not that the rows are equal: pairwise.md gives the smallest shift of a row each test would call.",
