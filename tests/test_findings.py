@@ -1,6 +1,7 @@
 """What the records say about the overwrites (torchrl_esrl/report/findings.py), run by run: the
 iterations the TD3 actor overwrote the ES mean, the averages that decided it, and what the two
-averages reached after the last one. Records written by hand, each number worked out below."""
+averages reached after the last one; and the per-task summary while rows fill. Records written by
+hand, each number worked out below."""
 import csv
 import json
 from pathlib import Path
