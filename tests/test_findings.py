@@ -9,6 +9,7 @@ from pathlib import Path
 from torchrl_esrl.report import pairwise_table, results_table, summary_table, write_summary_table
 from torchrl_esrl.report.findings import overwrite_runs_table, overwrite_table, write_overwrite_table
 from torchrl_esrl.report.records import find_runs
+from tests.test_algorithm_info import record as run_record
 from tests.test_timing import ALGORITHMS
 
 
@@ -47,9 +48,7 @@ def test_each_run_gives_its_overwritten_iterations_and_the_largest_averages_afte
 
 def test_the_summary_names_each_row_size_once_while_rows_fill(tmp_path):
     """Rows of 1, 2 and 5 runs: the footnote lists the sizes as a series, and a row of one run is its final return."""
-    runs = [{"summary": {"env": "A", "algorithm": algorithm, "seed": seed, "final_return": 10.0 * seed, "initial_return": 0.0,
-                         "ratio": [0.5, 0.2, 0.3] if algorithm == "es_td3_buffers" else None}, "metrics": [], "dir": Path(".")}
-            for algorithm, seeds in (("es_td3_buffers", 1), ("es_td3_shared", 2), ("td3", 5)) for seed in range(seeds)]
+    runs = [run_record(algorithm, seed, 10.0 * seed) for algorithm, seeds in (("es_td3_buffers", 1), ("es_td3_shared", 2), ("td3", 5)) for seed in range(seeds)]
     rows = summary_table(runs, results_table(runs), pairwise_table(runs, ALGORITHMS), [], ALGORITHMS)
     text = write_summary_table(rows, tmp_path, ALGORITHMS).read_text()
     assert "IQM over 1, 2 or 5 runs with its 95% bootstrap CI" in text
